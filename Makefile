@@ -1,0 +1,40 @@
+# Two commands do all set-up on a fresh machine: `make demo` and `make test`.
+PY ?= python3
+VENV ?= .venv
+BIN := $(VENV)/bin
+# CPU wheel by default (a plain `torch` pulls a multi-GB CUDA build); with a GPU present the
+# CUDA build is chosen. Override: make test TORCH_SPEC='torch==2.5.1'
+TORCH_SPEC ?= $(if $(shell command -v nvidia-smi 2>/dev/null),torch,torch==2.13.0)
+DEMO_WS ?= demo_ws
+export NUMBA_CACHE_DIR ?= $(CURDIR)/.numba_cache
+
+.PHONY: setup demo test bench lint clean
+
+setup: $(VENV)/.installed
+
+$(VENV)/.installed: pyproject.toml
+	test -x $(BIN)/python || $(PY) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q "$(TORCH_SPEC)"
+	$(BIN)/python -m pip install -q -e ".[test]"
+	touch $@
+
+examples/scene/transforms_train.json: examples/make_scene.py | $(VENV)/.installed
+	$(BIN)/python examples/make_scene.py examples/scene
+
+demo: $(VENV)/.installed examples/scene/transforms_train.json
+	$(BIN)/wgs -w $(DEMO_WS) prepare examples/scene
+	$(BIN)/wgs -w $(DEMO_WS) coarse --preset fast
+	$(BIN)/wgs -w $(DEMO_WS) info
+
+test: $(VENV)/.installed
+	$(BIN)/python -m pytest -q tests
+
+bench: $(VENV)/.installed
+	$(BIN)/python -m wgs.bench rasterizer --json
+
+lint: $(VENV)/.installed
+	$(BIN)/ruff check wgs tests examples
+
+clean:
+	rm -rf $(DEMO_WS) examples/scene .pytest_cache .numba_cache

@@ -1,0 +1,105 @@
+"""Shared fixtures: small generated scenes in every supported format."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "examples"))
+LEGO = ROOT.parent / "shared" / "data" / "lego"
+
+from make_scene import make_scene  # noqa: E402
+
+from wgs.scene.convention import GL_TO_CV, invert_rigid  # noqa: E402
+from wgs.scene.formats import read_scene  # noqa: E402
+from wgs.scene.images import read_image, write_png  # noqa: E402
+
+
+@pytest.fixture(scope="session")
+def blender_scene(tmp_path_factory) -> Path:
+    """The bundled example generator at 48x48: 4 train + 6 test views."""
+    return make_scene(tmp_path_factory.mktemp("blender") / "scene", seed=1, size=48, n_train=4, n_test=6)
+
+
+def blender_views(src: Path):
+    """(name, rgb [H,W,3], alpha [H,W], K, w2c) of all views of a Blender scene."""
+    raw = read_scene(src)
+    out = []
+    for v in raw.views:
+        img = read_image(v.image)
+        out.append((v.name, img[..., :3], img[..., 3], v.K, v.w2c))
+    return out
+
+
+def to_colmap(src: Path, dst: Path) -> Path:
+    """Write the Blender scene as a COLMAP scene (sparse/0 text model, images/, masks/)."""
+    from wgs.scene.colmap import write_model
+
+    views = blender_views(src)
+    for name, rgb, alpha, _, _ in views:
+        write_png(dst / "images" / name, rgb)
+        write_png(dst / "masks" / name, alpha)
+    write_model(dst / "sparse" / "0", [v[0] for v in views], [v[3] for v in views], [v[4] for v in views],
+                [(v[1].shape[1], v[1].shape[0]) for v in views])
+    return dst
+
+
+def to_ngp(src: Path, dst: Path) -> Path:
+    views = blender_views(src)
+    frames = []
+    for name, rgb, alpha, _, w2c in views:
+        write_png(dst / "images" / name, rgb)
+        write_png(dst / "masks" / name, alpha)
+        c2w = invert_rigid(w2c) @ GL_TO_CV  # back to OpenGL
+        frames.append({"file_path": f"images/{name}", "mask_path": f"masks/{name}",
+                       "transform_matrix": c2w.tolist()})
+    K = views[0][3]
+    h, w = views[0][1].shape[:2]
+    meta = {"fl_x": K[0, 0], "fl_y": K[1, 1], "cx": K[0, 2], "cy": K[1, 2], "w": w, "h": h, "frames": frames}
+    (dst / "transforms.json").write_text(json.dumps(meta))
+    return dst
+
+
+def to_idr(src: Path, dst: Path) -> Path:
+    views = blender_views(src)
+    cams = {}
+    for i, (_, rgb, alpha, K, w2c) in enumerate(views):
+        write_png(dst / "image" / f"{i:03d}.png", rgb)
+        write_png(dst / "mask" / f"{i:03d}.png", alpha)
+        P = np.eye(4)
+        P[:3, :4] = 2.5 * (K @ w2c[:3, :4])  # projection matrices are defined up to scale
+        cams[f"world_mat_{i}"] = P
+        cams[f"scale_mat_{i}"] = np.eye(4)
+    np.savez(dst / "cameras_sphere.npz", **cams)
+    return dst
+
+
+@pytest.fixture(scope="session")
+def scene_formats(blender_scene, tmp_path_factory) -> dict[str, Path]:
+    base = tmp_path_factory.mktemp("formats")
+    return {
+        "blender": blender_scene,
+        "colmap": to_colmap(blender_scene, base / "colmap"),
+        "ngp": to_ngp(blender_scene, base / "ngp"),
+        "idr": to_idr(blender_scene, base / "idr"),
+    }
+
+
+@pytest.fixture
+def scene_copy(blender_scene, tmp_path) -> Path:
+    """A writable copy of the example scene, for tests that break it."""
+    dst = tmp_path / "scene"
+    shutil.copytree(blender_scene, dst)
+    return dst
+
+
+def lego_or_skip() -> Path:
+    if not (LEGO / "transforms_train.json").is_file():
+        pytest.skip("shared lego data not present")
+    return LEGO

@@ -1,0 +1,178 @@
+"""The `wgs` command line.
+
+Pipeline: prepare -> coarse -> mask-data -> finetune -> repair -> fine -> eval.
+Each stage reads and writes one workspace folder and is skipped when its inputs are unchanged.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import click
+
+from . import __version__
+from .config import as_dict, load_config_file, resolve
+from .errors import WgsError
+from .progress import console, log, set_quiet
+from .workspace import STAGE_DIRS, Workspace
+
+HELP = """WaveletGaussian: sparse-view 3D Gaussian object reconstruction.
+
+\b
+  prepare    import posed photos (+ masks) into a workspace
+  coarse     train a coarse 3DGS on the sparse views; Haar-DWT its renders
+  mask-data  online random masking -> corrupted/clean LL training pairs
+  finetune   train the LL diffusion repair model D and the HF U-Net U
+  repair     repair novel-view renders -> pseudo references;  fine: refine on them;  eval: metrics
+
+Every stage reads and writes one workspace (-w) and is skipped when up to date.
+"""
+
+
+@dataclass
+class Ctx:
+    workspace: Path | None
+    device: str
+    seed: int
+    debug: bool
+    file_cfg: dict[str, Any] = field(default_factory=dict)
+
+    def ws(self) -> Workspace:
+        if self.workspace is None:
+            raise WgsError("no workspace: pass -w/--workspace DIR")
+        return Workspace(self.workspace)
+
+    def config(self, stage: str, preset: str | None, **cli: Any) -> Any:
+        return resolve(stage, preset or self.file_cfg.get("global", {}).get("preset"), self.file_cfg, cli)
+
+    def torch_device(self):
+        from .device import resolve_device
+
+        dev = resolve_device(self.device)
+        log(f"device: {dev}")
+        return dev
+
+
+@click.group(help=HELP, context_settings={"help_option_names": ["-h", "--help"]})
+@click.option("-w", "--workspace", type=click.Path(path_type=Path), help="Workspace folder.")
+@click.option("--device", default=None, help="auto | cpu | cuda[:N] | mps  (auto: cuda, mps, cpu).")
+@click.option("--seed", type=int, default=None, help="Random seed (default 0).")
+@click.option("--quiet", "-q", is_flag=True, help="Only errors and final results.")
+@click.option("--config", "config_file", type=click.Path(path_type=Path), help="wgs.toml: one table per stage.")
+@click.option("--debug", is_flag=True, help="Show tracebacks.")
+@click.version_option(__version__, prog_name="wgs")
+@click.pass_context
+def cli(ctx: click.Context, workspace, device, seed, quiet, config_file, debug) -> None:
+    set_quiet(quiet)
+    file_cfg = load_config_file(config_file) if config_file else {"global": {}}
+    g = file_cfg["global"]
+    ctx.obj = Ctx(workspace, device or g.get("device", "auto"), seed if seed is not None else g.get("seed", 0),
+                  debug, file_cfg)
+
+
+def workspace_option(f):
+    """-w also accepted after the subcommand (`wgs coarse -w WS`)."""
+    def set_ws(ctx: click.Context, _param, value):
+        if value is not None:
+            ctx.find_object(Ctx).workspace = value
+        return value
+
+    return click.option("-w", "--workspace", "ws_override", type=click.Path(path_type=Path), expose_value=False,
+                        callback=set_ws, help="Workspace folder.")(f)
+
+
+def stage_common(f):
+    f = click.option("--force", is_flag=True, help="Rerun even when up to date.")(f)
+    f = click.option("--preset", type=click.Choice(["fast", "default", "paper"]), default=None,
+                     help="Budget preset.")(f)
+    return workspace_option(f)
+
+
+@cli.command()
+@click.argument("scene", type=click.Path(path_type=Path))
+@click.option("--views", type=int, default=None, help="Number of training views (farthest-point or sparse_N.txt).")
+@click.option("--downscale", type=int, default=None, help="Integer downscale factor (uses images_K/ if present).")
+@click.option("--max-pixels", type=int, default=None, help="Refuse images larger than this many pixels.")
+@stage_common
+@click.pass_obj
+def prepare(obj: Ctx, scene: Path, views, downscale, max_pixels, force, preset) -> None:
+    """Import SCENE (COLMAP, Blender, instant-ngp/nerfstudio or IDR) into the workspace."""
+    from .stages.s0_prepare import run_prepare
+
+    cfg = obj.config("prepare", preset, views=views, downscale=downscale, max_pixels=max_pixels)
+    if cfg.views is not None and cfg.views < 2:
+        raise WgsError(f"--views must be at least 2, got {cfg.views}")
+    if cfg.downscale < 1:
+        raise WgsError(f"--downscale must be a positive integer, got {cfg.downscale}")
+    run_prepare(obj.ws(), scene, cfg, force=force)
+
+
+@cli.command()
+@workspace_option
+@click.pass_obj
+def info(obj: Ctx) -> None:
+    """Show what the workspace holds and which stages are done, fresh or stale."""
+    from rich.table import Table
+
+    ws = obj.ws()
+    if not ws.root.is_dir():
+        raise WgsError("workspace folder not found", ws.root)
+    m = ws.manifest("scene")
+    if m is not None:
+        s = m.get("summary", {})
+        res = s.get("resolution")
+        res_txt = f"{res[0]}x{res[1]}" if res and isinstance(res[0], int) else str(res)
+        console.print(f"scene: {s.get('source')} ({s.get('format')})", soft_wrap=True)
+        console.print(f"  {s.get('num_train')} training views, {s.get('num_test')} test views, "
+                      f"{res_txt} images, {'with' if s.get('has_masks') else 'without'} masks")
+    table = Table(title=f"workspace {ws.root}")
+    for col in ("stage", "folder", "status", "wall time", "finished"):
+        table.add_column(col)
+    for stage, folder in STAGE_DIRS.items():
+        st = ws.status(stage)
+        mm = ws.manifest(stage) or {}
+        colour = {"fresh": "green", "stale": "yellow", "missing": "dim"}[st]
+        wt = mm.get("wall_time_s")
+        table.add_row(stage, folder + "/", f"[{colour}]{st}[/]", f"{wt:.1f} s" if wt is not None else "",
+                      mm.get("finished", ""))
+    console.print(table)
+
+
+def _register_stages() -> None:
+    from .stages import commands
+
+    commands.register(cli, stage_common, workspace_option)
+
+
+def main(argv: list[str] | None = None) -> None:
+    debug = "--debug" in (argv if argv is not None else sys.argv[1:])
+    try:
+        cli.main(args=argv, prog_name="wgs", standalone_mode=False)
+    except click.exceptions.Abort:
+        console.print("[red]interrupted[/]: the workspace keeps its last good state; rerun to continue")
+        sys.exit(130)
+    except click.ClickException as exc:
+        exc.show()
+        sys.exit(exc.exit_code)
+    except WgsError as exc:
+        if debug:
+            raise
+        click.echo(f"error: {exc}", err=True)
+        sys.exit(2)
+    except KeyboardInterrupt:
+        click.echo("interrupted: the workspace keeps its last good state; rerun to continue", err=True)
+        sys.exit(130)
+    except OSError as exc:
+        if debug:
+            raise
+        where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+        click.echo(f"error: {where}{exc.strerror or exc}", err=True)
+        sys.exit(1)
+
+
+_register_stages()
+
+__all__ = ["cli", "main", "as_dict"]

@@ -1,0 +1,163 @@
+"""Stage configurations: dataclasses with defaults, presets, a TOML file, and CLI overrides.
+
+Precedence is CLI > config file > preset > dataclass defaults. A config file has one table per
+stage (`[prepare]`, `[coarse]`, ...) plus optional top-level `device` and `seed`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import tomllib
+
+from .errors import InputError
+
+
+@dataclass
+class PrepareConfig:
+    views: int | None = None  # None: every training view of the dataset
+    downscale: int = 1
+    max_pixels: int = 4096 * 4096  # refuse larger images unless raised
+    test_every: int = 8  # without a test split: every k-th non-training view
+
+
+@dataclass
+class TrainConfig:
+    """The shared 3DGS training loop (coarse, mask-data, fine)."""
+
+    iterations: int = 2000
+    max_seconds: float | None = None
+    sh_degree: int = 2
+    sh_increase_every: int = 500
+    lr_means: float = 1.6e-4  # times the scene extent
+    lr_means_final: float = 1.6e-6
+    lr_quats: float = 1e-3
+    lr_scales: float = 5e-3
+    lr_opacities: float = 5e-2
+    lr_sh0: float = 2.5e-3
+    lr_shN: float = 2.5e-3 / 20
+    ssim_weight: float = 0.2
+    mask_weight: float = 0.1
+    random_background: bool = True
+    init_points: int = 20000  # visual-hull points at most
+    hull_resolution: int = 96
+    # densification (gsplat DefaultStrategy-like)
+    refine_start: int = 300
+    refine_stop: int = 1500
+    refine_every: int = 100
+    reset_every: int = 3000
+    grad_threshold: float = 2e-4
+    prune_opacity: float = 0.005
+    grow_scale3d: float = 0.01
+    prune_scale3d: float = 0.1
+    max_gaussians: int = 60000
+    floater_every: int = 500
+    floater_k: int = 8
+    floater_lambda: float = 3.0
+    log_every: int = 50
+
+
+@dataclass
+class CoarseConfig(TrainConfig):
+    iterations: int = 1500
+
+
+STAGES: dict[str, type] = {"prepare": PrepareConfig, "coarse": CoarseConfig}
+
+PRESETS: dict[str, dict[str, dict[str, Any]]] = {
+    "fast": {
+        "coarse": {"iterations": 400, "refine_start": 100, "refine_stop": 300, "refine_every": 50,
+                   "sh_degree": 1, "sh_increase_every": 200, "init_points": 5000, "hull_resolution": 64,
+                   "max_gaussians": 20000, "floater_every": 200},
+    },
+    "default": {},
+    "paper": {
+        "coarse": {"iterations": 10000, "refine_stop": 7000, "sh_degree": 3, "max_gaussians": 1000000,
+                   "init_points": 100000, "hull_resolution": 128, "reset_every": 3000},
+    },
+}
+
+GLOBAL_KEYS = {"device": str, "seed": int, "preset": str}
+
+
+def _accepts(tp: Any, value: Any) -> bool:
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        return any(_accepts(a, value) for a in typing.get_args(tp))
+    if tp is type(None):
+        return value is None
+    if tp is float:
+        return isinstance(value, int | float) and not isinstance(value, bool)
+    if tp is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    return isinstance(value, tp)
+
+
+def _field_types(cls: type) -> dict[str, Any]:
+    hints = typing.get_type_hints(cls)
+    return {f.name: hints[f.name] for f in dataclasses.fields(cls)}
+
+
+def check_table(cls: type, table: dict[str, Any], where: str, path: str | Path | None = None) -> None:
+    """Raise InputError naming the first unknown key or wrongly typed value."""
+    types_ = _field_types(cls)
+    for key, value in table.items():
+        if key not in types_:
+            raise InputError(f"unknown key '{where}.{key}' (known: {', '.join(sorted(types_))})", path)
+        if not _accepts(types_[key], value):
+            raise InputError(f"key '{where}.{key}' must be {types_[key]}, got {value!r}", path)
+
+
+def load_config_file(path: str | Path) -> dict[str, Any]:
+    """Read and validate a wgs.toml; returns {'global': {...}, stage: {...}}."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            data = tomllib.load(fh)
+    except FileNotFoundError:
+        raise InputError("config file not found", path) from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"not valid TOML: {exc}", path) from None
+    out: dict[str, Any] = {"global": {}}
+    for key, value in data.items():
+        if isinstance(value, dict):
+            name = key.replace("-", "_")
+            if name not in STAGES:
+                raise InputError(f"unknown table '[{key}]' (known: {', '.join(STAGES)})", path)
+            check_table(STAGES[name], value, key, path)
+            out[name] = value
+        elif key in GLOBAL_KEYS:
+            if not isinstance(value, GLOBAL_KEYS[key]) or isinstance(value, bool):
+                raise InputError(f"key '{key}' must be {GLOBAL_KEYS[key].__name__}, got {value!r}", path)
+            out["global"][key] = value
+        else:
+            raise InputError(f"unknown key '{key}'", path)
+    return out
+
+
+def resolve(stage: str, preset: str | None = None, file_cfg: dict[str, Any] | None = None,
+            cli: dict[str, Any] | None = None) -> Any:
+    """Build a stage's config: defaults < preset < file < CLI (CLI values of None are ignored)."""
+    cls = STAGES[stage]
+    values: dict[str, Any] = {}
+    if preset is not None:
+        if preset not in PRESETS:
+            raise InputError(f"unknown preset {preset!r} (known: {', '.join(PRESETS)})")
+        values.update(PRESETS[preset].get(stage, {}))
+    values.update((file_cfg or {}).get(stage, {}))
+    values.update({k: v for k, v in (cli or {}).items() if v is not None})
+    check_table(cls, values, stage)
+    return cls(**values)
+
+
+def as_dict(cfg: Any) -> dict[str, Any]:
+    return dataclasses.asdict(cfg)
+
+
+__all__ = ["PrepareConfig", "TrainConfig", "CoarseConfig", "STAGES", "PRESETS", "resolve",
+           "load_config_file", "as_dict", "check_table", "field"]

@@ -1,0 +1,34 @@
+"""Console output (rich): one console on stderr, quiet mode, and a training progress bar."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+console = Console(stderr=True, highlight=False)
+_quiet = False
+
+
+def set_quiet(q: bool) -> None:
+    global _quiet
+    _quiet = q
+    console.quiet = q
+
+
+def log(msg: str) -> None:
+    if not _quiet:
+        console.print(msg)
+
+
+@contextlib.contextmanager
+def progress_bar(description: str, total: int) -> Iterator[Progress]:
+    """A progress bar with a free-text status field (`progress.update(task, status=...)`)."""
+    with Progress(
+        TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+        TextColumn("{task.fields[status]}"), console=console, disable=_quiet, transient=False,
+    ) as prog:
+        prog.add_task(description, total=total, status="")
+        yield prog

@@ -1,0 +1,1 @@
+"""Scene import: every supported format becomes `RawScene` (OpenCV world-to-camera + K)."""

@@ -1,0 +1,89 @@
+"""Read a prepared workspace scene back: frames with tensors in the normalised world."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import InputError
+from ..workspace import Workspace, read_json
+from .colmap import read_model
+from .convention import Normalisation
+from .images import read_image
+
+
+@dataclass
+class Frame:
+    """One prepared view. Tensors are float32 on the CPU.
+
+    Attributes:
+        name: image name in the workspace.
+        K: [3, 3] intrinsics.  viewmat: [4, 4] world-to-camera (OpenCV, normalised world).
+        image: [H, W, 3] straight (not premultiplied) colour in [0, 1], or None if not loaded.
+        mask: [H, W] in [0, 1], or None.
+    """
+
+    name: str
+    K: torch.Tensor
+    viewmat: torch.Tensor
+    width: int
+    height: int
+    image: torch.Tensor | None = None
+    mask: torch.Tensor | None = None
+
+    @property
+    def center(self) -> torch.Tensor:
+        R, t = self.viewmat[:3, :3], self.viewmat[:3, 3]
+        return -R.T @ t
+
+
+@dataclass
+class PreparedScene:
+    info: dict
+    norm: Normalisation
+    train: list[Frame]
+    test: list[Frame]
+
+    @property
+    def has_masks(self) -> bool:
+        return bool(self.info.get("has_masks"))
+
+
+def load_prepared(ws: Workspace, load_test_images: bool = False) -> PreparedScene:
+    sdir = ws.stage_dir("scene")
+    if ws.manifest("scene") is None:
+        raise InputError("no prepared scene: run `wgs prepare SCENE -w WS` first", sdir)
+    info = read_json(sdir / "scene.json")
+    model = read_model(sdir / "sparse")
+
+    def frames(names: list[str], with_images: bool) -> list[Frame]:
+        out = []
+        for n in names:
+            if n not in model:
+                raise InputError(f"image {n} is not in the COLMAP model", sdir / "sparse")
+            K, w2c, w, h = model[n]
+            f = Frame(n, torch.tensor(K, dtype=torch.float32), torch.tensor(w2c, dtype=torch.float32), w, h)
+            if with_images:
+                f.image = torch.from_numpy(read_image(sdir / "images" / n)[..., :3].copy())
+                mpath = sdir / "masks" / n
+                if mpath.is_file():
+                    f.mask = torch.from_numpy(read_image(mpath)[..., 0].copy())
+            out.append(f)
+        return out
+
+    return PreparedScene(info, Normalisation.from_json(info["normalisation"]),
+                         frames(info["train_names"], True), frames(info["test_names"], load_test_images))
+
+
+def composite(image: torch.Tensor, mask: torch.Tensor | None, background: torch.Tensor) -> torch.Tensor:
+    """[H, W, 3] straight colour over a background [3] through mask [H, W]."""
+    if mask is None:
+        return image
+    a = mask[..., None]
+    return image * a + background * (1 - a)
+
+
+__all__ = ["Frame", "PreparedScene", "load_prepared", "composite", "Path", "np"]

@@ -1,0 +1,48 @@
+"""Detect a scene folder's format and read it as a RawScene."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..errors import InputError
+from .colmap import find_model_dir, read_colmap_scene
+from .idr import read_idr_scene
+from .transforms import read_blender_scene, read_ngp_scene
+from .types import RawScene
+
+FORMATS = {
+    "blender": "transforms_train.json (+ transforms_test.json), RGBA images",
+    "ngp": "transforms.json (instant-ngp / nerfstudio)",
+    "colmap": "sparse/0/ or sparse/ with cameras.bin|txt, and images/",
+    "idr": "cameras_sphere.npz with image/ (or images/) and mask/",
+}
+
+
+def detect_format(root: Path) -> str:
+    if (root / "transforms_train.json").is_file():
+        return "blender"
+    if (root / "transforms.json").is_file():
+        return "ngp"
+    if find_model_dir(root) is not None:
+        return "colmap"
+    if (root / "cameras_sphere.npz").is_file():
+        return "idr"
+    found = sorted(p.name + ("/" if p.is_dir() else "") for p in root.iterdir())[:20]
+    expected = "; ".join(f"{k}: {v}" for k, v in FORMATS.items())
+    raise InputError(f"no known scene format. Found: {', '.join(found) or '(empty folder)'}. Expected one of "
+                     f"{expected}", root)
+
+
+def read_scene(root: str | Path) -> RawScene:
+    root = Path(root)
+    if not root.exists():
+        raise InputError("scene folder not found", root)
+    if not root.is_dir():
+        raise InputError("not a folder", root)
+    fmt = detect_format(root)
+    reader = {"blender": read_blender_scene, "ngp": read_ngp_scene, "colmap": read_colmap_scene,
+              "idr": read_idr_scene}[fmt]
+    scene = reader(root)
+    if not scene.views:
+        raise InputError(f"{fmt} scene has no usable images", root)
+    return scene

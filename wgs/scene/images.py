@@ -1,0 +1,121 @@
+"""Image and mask files (OpenImageIO): read, area-downscale, write."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import OpenImageIO as oiio
+
+from ..errors import InputError
+from ..workspace import atomic_path
+
+IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff", ".bmp", ".webp")
+
+
+def image_size(path: Path) -> tuple[int, int]:
+    """(width, height) from the header, without decoding pixels."""
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise InputError(f"cannot read image ({_oiio_error()})", path)
+    spec = inp.spec()
+    inp.close()
+    return spec.width, spec.height
+
+
+def read_image(path: Path, max_pixels: int | None = None) -> np.ndarray:
+    """Decode an image to float32 [H, W, C] in [0, 1] (C = 1, 3 or 4; 8/16-bit or float files)."""
+    if not path.is_file():
+        raise InputError("image file not found", path)
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise InputError(f"cannot read image ({_oiio_error()})", path)
+    try:
+        spec = inp.spec()
+        if max_pixels is not None and spec.width * spec.height > max_pixels:
+            raise InputError(
+                f"image is {spec.width}x{spec.height}, above the limit of {max_pixels} pixels "
+                "(raise it with --max-pixels)", path)
+        data = inp.read_image(0, 0, 0, spec.nchannels, "float")
+        err = inp.geterror() if hasattr(inp, "geterror") else ""
+    finally:
+        inp.close()
+    if data is None or not isinstance(data, np.ndarray) or err:
+        raise InputError(f"truncated or corrupt image ({err or _oiio_error() or 'no pixel data'})", path)
+    if data.ndim == 2:
+        data = data[..., None]
+    if not np.isfinite(data).all():
+        raise InputError("image holds NaN or infinite values", path)
+    return np.ascontiguousarray(data, dtype=np.float32)
+
+
+def split_rgba(img: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """[H, W, C] -> RGB [H, W, 3] and alpha [H, W] (or None)."""
+    c = img.shape[-1]
+    if c == 1:
+        return np.repeat(img, 3, axis=-1), None
+    if c == 2:
+        return np.repeat(img[..., :1], 3, axis=-1), img[..., 1]
+    if c == 3:
+        return img, None
+    return img[..., :3], img[..., 3]
+
+
+def to_mask(img: np.ndarray) -> np.ndarray:
+    """A mask file (grey, RGB or RGBA) -> [H, W] float in [0, 1]."""
+    if img.shape[-1] == 4:
+        # Masks saved as RGBA: the alpha when it is used, else the colour.
+        a = img[..., 3]
+        return a if a.min() < 1.0 else img[..., :3].mean(-1)
+    return img[..., :3].mean(-1) if img.shape[-1] >= 3 else img[..., 0]
+
+
+def downscale(rgb: np.ndarray, mask: np.ndarray | None, k: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """Area-average by an integer factor k; colour is averaged premultiplied by the mask so object
+    edges keep no background fringe. Sizes not divisible by k lose their last rows/columns."""
+    if k == 1:
+        return rgb, mask
+    h, w = (rgb.shape[0] // k) * k, (rgb.shape[1] // k) * k
+    if h == 0 or w == 0:
+        raise ValueError(f"downscale factor {k} is larger than the image ({rgb.shape[1]}x{rgb.shape[0]})")
+
+    def pool(x: np.ndarray) -> np.ndarray:
+        x = x[:h, :w]
+        return x.reshape(h // k, k, w // k, k, *x.shape[2:]).mean(axis=(1, 3))
+
+    if mask is None:
+        return pool(rgb).astype(np.float32), None
+    a = pool(mask)
+    premult = pool(rgb * mask[..., None])
+    out = np.where(a[..., None] > 1e-8, premult / np.maximum(a[..., None], 1e-8), 0.0)
+    return out.astype(np.float32), a.astype(np.float32)
+
+
+def write_png(path: Path, img: np.ndarray) -> None:
+    """Write [H, W] or [H, W, C] float in [0, 1] as an 8-bit PNG (atomically)."""
+    if img.ndim == 2:
+        img = img[..., None]
+    data = np.clip(np.rint(np.clip(img, 0.0, 1.0) * 255.0), 0, 255).astype(np.uint8)
+    h, w, c = data.shape
+    spec = oiio.ImageSpec(w, h, c, "uint8")
+    with atomic_path(path) as tmp:
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None or not out.open(str(tmp), spec):
+            raise OSError(f"{path}: cannot write PNG: {_oiio_error()}")
+        ok = out.write_image(np.ascontiguousarray(data))
+        out.close()
+        if not ok:
+            raise OSError(f"{path}: cannot write PNG: {_oiio_error()}")
+
+
+def find_with_stem(folder: Path, stem: str) -> Path | None:
+    """The file in `folder` whose name is `stem` plus an image extension (any case)."""
+    for ext in IMAGE_EXTS:
+        for cand in (folder / f"{stem}{ext}", folder / f"{stem}{ext.upper()}"):
+            if cand.is_file():
+                return cand
+    return None
+
+
+def _oiio_error() -> str:
+    return (oiio.geterror() or "").strip().replace("\n", " ")

@@ -1,0 +1,143 @@
+"""`wgs prepare`: import a scene into the workspace's `scene/` folder.
+
+Writes images and masks at working resolution, a normalised COLMAP text model (pycolmap),
+the split as text files, and `scene.json`. Poses are normalised with the training cameras only.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..config import PrepareConfig
+from ..errors import InputError
+from ..workspace import StageRun, atomic_write_bytes, atomic_write_json
+from .colmap import undistort, write_model
+from .convention import normalisation_from_cameras, orthonormalise, rotation_error, scale_intrinsics
+from .formats import read_scene
+from .images import downscale, read_image, split_rgba, to_mask, write_png
+from .splits import choose_split
+from .types import RawScene, View
+
+MASK_MIN_FRACTION = 1e-4  # a mask with less foreground than this is empty
+
+
+def scene_inputs_digest(scene: RawScene) -> str:
+    """Hash of the metadata files' contents and the image files' sizes and mtimes."""
+    h = hashlib.sha256()
+    for f in scene.metadata_files:
+        h.update(str(f).encode())
+        h.update(f.read_bytes() if f.is_file() else b"")
+    for v in scene.views:
+        for p in (v.image, v.mask):
+            if p is not None:
+                st = p.stat()
+                h.update(f"{p}:{st.st_size}:{st.st_mtime_ns}".encode())
+    return h.hexdigest()[:16]
+
+
+def load_scene_for_prepare(root: str | Path, cfg: PrepareConfig) -> RawScene:
+    scene = read_scene(root)
+    for v in scene.views:
+        _check_camera(v, scene)
+    choose_split(scene, cfg.views, cfg.test_every)
+    return scene
+
+
+def _check_camera(v: View, scene: RawScene) -> None:
+    src = scene.metadata_files[0] if scene.metadata_files else scene.root
+    if not (np.isfinite(v.K).all() and np.isfinite(v.w2c).all()):
+        raise InputError(f"camera of {v.name} holds NaN or inf", src)
+    if v.K[0, 0] <= 0 or v.K[1, 1] <= 0:
+        raise InputError(f"camera of {v.name} has a zero or negative focal length", src)
+    err = rotation_error(v.w2c[:3, :3])
+    if err > 1e-2:
+        raise InputError(f"pose of {v.name} is not a rotation (error {err:.3g}: singular or scaled)", src)
+    v.w2c[:3, :3] = orthonormalise(v.w2c[:3, :3])
+
+
+def _out_name(v: View) -> str:
+    return Path(v.name.replace("/", "__")).stem + ".png"
+
+
+def _load_view(v: View, cfg: PrepareConfig) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """Read, check, undistort and downscale one view -> rgb [H,W,3], mask [H,W] or None, K."""
+    img = read_image(v.image, cfg.max_pixels)
+    h, w = img.shape[:2]
+    if (w, h) != (v.width, v.height):
+        raise InputError(f"image is {w}x{h} but its camera says {v.width}x{v.height}", v.image)
+    rgb, mask = split_rgba(img)
+    if v.mask is not None:
+        m = read_image(v.mask, cfg.max_pixels)
+        if m.shape[:2] != (h, w):
+            raise InputError(f"mask is {m.shape[1]}x{m.shape[0]} but its image is {w}x{h}", v.mask)
+        mask = to_mask(m)
+    K = v.K
+    if v.distortion is not None:
+        rgb, K, extra = undistort(rgb, v.distortion, K, w, h, [mask] if mask is not None else None)
+        mask = extra[0] if extra else None
+    k = cfg.downscale
+    if k > 1:
+        rgb, mask = downscale(rgb, mask, k)
+        K = scale_intrinsics(K, 1.0 / k, 1.0 / k)
+    if mask is not None:
+        frac = float((mask > 0.5).mean())
+        where = v.mask or v.image
+        if frac < MASK_MIN_FRACTION:
+            raise InputError("mask is empty (no object pixels)", where)
+        if mask.min() > 0.5:
+            raise InputError("mask is all foreground (no background pixels): not a segmentation", where)
+    return rgb, mask, K
+
+
+def prepare(scene: RawScene, cfg: PrepareConfig, run: StageRun) -> dict[str, Any]:
+    """Write the workspace scene folder for `scene` into the stage's staging folder."""
+    ids = {"train": scene.train, "test": scene.test}
+    norm = normalisation_from_cameras([scene.views[i].w2c for i in scene.train])
+    names, Ks, w2cs, sizes = [], [], [], []
+    has_mask: dict[str, bool] = {}
+    used = set()
+    for split in ("train", "test"):
+        for i in ids[split]:
+            v = scene.views[i]
+            rgb, mask, K = _load_view(v, cfg)
+            name = _out_name(v)
+            if name in used:
+                raise InputError(f"two images map to the same name {name}", v.image)
+            used.add(name)
+            write_png(run.path("images", name), rgb)
+            if mask is not None:
+                write_png(run.path("masks", name), mask)
+            has_mask[name] = mask is not None
+            names.append(name)
+            Ks.append(K)
+            w2cs.append(norm.w2c_to_normalised(v.w2c))
+            sizes.append((rgb.shape[1], rgb.shape[0]))
+    train_names = names[: len(scene.train)]
+    test_names = names[len(scene.train):]
+    masked = [has_mask[n] for n in train_names]
+    if any(masked) and not all(masked):
+        missing = train_names[masked.index(False)]
+        raise InputError(f"some training views have masks but {missing} has none", scene.root)
+    write_model(run.path("sparse", "cameras.txt").parent, names, Ks, w2cs, sizes)
+    atomic_write_bytes(run.path("split_train.txt"), ("\n".join(train_names) + "\n").encode())
+    atomic_write_bytes(run.path("split_test.txt"), ("\n".join(test_names) + "\n").encode() if test_names else b"")
+    res = sorted(set(sizes))
+    info = {
+        "format": scene.format,
+        "source": str(scene.root.resolve()),
+        "train_images": [scene.views[i].image.relative_to(scene.root).as_posix() for i in scene.train],
+        "test_images": [scene.views[i].image.relative_to(scene.root).as_posix() for i in scene.test],
+        "train_names": train_names,
+        "test_names": test_names,
+        "resolution": list(res[0]) if len(res) == 1 else [list(r) for r in res],
+        "downscale": cfg.downscale,
+        "has_masks": bool(all(masked)),
+        "normalisation": norm.to_json(),
+        "notes": scene.notes,
+    }
+    atomic_write_json(run.path("scene.json"), info)
+    return info

@@ -1,0 +1,1 @@
+"""Pipeline stages: each a function (workspace, config) -> outputs in its numbered folder."""

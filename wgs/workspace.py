@@ -1,0 +1,269 @@
+"""The workspace contract: numbered stage folders, manifests, atomic writes, a lock, freshness.
+
+Layout::
+
+    WS/scene/  1_coarse/  2_mask_data/  3_finetune/  4_repair/  5_fine/  6_eval/
+    WS/<stage>/manifest.json   resolved config, fingerprint, upstream fingerprints, times, status
+
+A stage writes into a hidden staging folder and is swapped in by rename only when it succeeded,
+so an interrupted or failed stage leaves the last good output untouched.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import os
+import resource
+import shutil
+import socket
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from . import __version__
+from .errors import InputError, WgsError, WorkspaceLocked
+
+STAGE_DIRS: dict[str, str] = {
+    "scene": "scene",
+    "coarse": "1_coarse",
+    "mask_data": "2_mask_data",
+    "finetune": "3_finetune",
+    "repair": "4_repair",
+    "fine": "5_fine",
+    "eval": "6_eval",
+}
+UPSTREAM: dict[str, tuple[str, ...]] = {
+    "scene": (),
+    "coarse": ("scene",),
+    "mask_data": ("scene", "coarse"),
+    "finetune": ("coarse", "mask_data"),
+    "repair": ("scene", "coarse", "finetune"),
+    "fine": ("scene", "coarse", "repair"),
+    "eval": ("scene", "coarse", "fine"),
+}
+MANIFEST = "manifest.json"
+LOCK = ".wgs.lock"
+
+
+# ----------------------------------------------------------------------------- atomic writes
+@contextlib.contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """Yield a temporary sibling path; it replaces `path` by rename only if the block succeeds."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}{path.suffix}")
+    try:
+        yield tmp
+        if not tmp.exists():
+            raise WgsError("nothing was written", path)
+        with open(tmp, "rb") as fh:  # data reaches the disk before the rename makes it visible
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+
+
+def atomic_write_bytes(path: str | Path, data: bytes) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+
+
+def atomic_write_json(path: str | Path, obj: Any) -> None:
+    atomic_write_bytes(path, (json.dumps(obj, indent=2, sort_keys=True, default=_json_default) + "\n").encode())
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, Path):
+        return str(obj)
+    if hasattr(obj, "tolist"):
+        return obj.tolist()
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+def read_json(path: str | Path) -> Any:
+    path = Path(path)
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError("file not found", path) from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"not valid JSON ({exc})", path) from None
+
+
+def fingerprint(obj: Any) -> str:
+    """Stable sha256 of a JSON-able object (config + upstream fingerprints + version)."""
+    blob = json.dumps(obj, sort_keys=True, default=_json_default).encode()
+    return hashlib.sha256(blob).hexdigest()[:16]
+
+
+def peak_memory_mb() -> float:
+    """Peak resident memory of this process so far (MiB)."""
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return rss / 1024.0 if sys.platform != "darwin" else rss / 2**20
+
+
+# ----------------------------------------------------------------------------- the workspace
+@dataclass
+class StageRun:
+    """A stage in progress: write outputs under `dir`; `record` goes into the manifest."""
+
+    stage: str
+    dir: Path
+    record: dict[str, Any] = field(default_factory=dict)
+
+    def path(self, *parts: str) -> Path:
+        p = self.dir.joinpath(*parts)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        return p
+
+
+class Workspace:
+    def __init__(self, root: str | Path):
+        self.root = Path(root)
+
+    def __repr__(self) -> str:
+        return f"Workspace({str(self.root)!r})"
+
+    def stage_dir(self, stage: str) -> Path:
+        return self.root / STAGE_DIRS[stage]
+
+    def manifest(self, stage: str) -> dict[str, Any] | None:
+        """The stage's manifest when it finished successfully, else None."""
+        path = self.stage_dir(stage) / MANIFEST
+        if not path.exists():
+            return None
+        try:
+            data = json.loads(path.read_text(encoding="utf-8"))
+        except (json.JSONDecodeError, UnicodeDecodeError, OSError):
+            return None
+        return data if isinstance(data, dict) and data.get("status") == "done" else None
+
+    def upstream_fingerprints(self, stage: str) -> dict[str, str | None]:
+        out: dict[str, str | None] = {}
+        for up in UPSTREAM[stage]:
+            m = self.manifest(up)
+            out[up] = None if m is None else m.get("fingerprint")
+        return out
+
+    def stage_fingerprint(self, stage: str, config: dict[str, Any], extra: Any = None) -> str:
+        return fingerprint({"stage": stage, "config": config, "upstream": self.upstream_fingerprints(stage),
+                            "extra": extra, "version": __version__})
+
+    def status(self, stage: str, fp: str | None = None) -> str:
+        """'missing', 'stale' (inputs or config changed) or 'fresh'."""
+        m = self.manifest(stage)
+        if m is None:
+            return "missing"
+        if m.get("upstream") != self.upstream_fingerprints(stage):
+            return "stale"
+        if fp is not None and m.get("fingerprint") != fp:
+            return "stale"
+        return "fresh"
+
+    # -- locking -------------------------------------------------------------------------------
+    @contextlib.contextmanager
+    def lock(self) -> Iterator[None]:
+        """Exclusive write access; a lock left by a dead process on this host is taken over."""
+        self.root.mkdir(parents=True, exist_ok=True)
+        path = self.root / LOCK
+        me = {"pid": os.getpid(), "host": socket.gethostname(), "started": time.strftime("%Y-%m-%d %H:%M:%S")}
+        for _ in range(3):
+            try:
+                fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            except FileExistsError:
+                holder = _read_lock(path)
+                if holder is not None and _lock_alive(holder):
+                    raise WorkspaceLocked(
+                        f"workspace is in use by pid {holder.get('pid')} on {holder.get('host')} "
+                        f"since {holder.get('started')}", self.root) from None
+                with contextlib.suppress(FileNotFoundError):
+                    path.unlink()  # stale lock from a dead process
+                continue
+            with os.fdopen(fd, "w") as fh:
+                json.dump(me, fh)
+            break
+        else:
+            raise WorkspaceLocked("could not take the workspace lock", self.root)
+        try:
+            self._recover()
+            yield
+        finally:
+            with contextlib.suppress(FileNotFoundError):
+                if (_read_lock(path) or {}).get("pid") == me["pid"]:
+                    path.unlink()
+
+    def _recover(self) -> None:
+        """Undo what an interrupted swap or stage left behind."""
+        for name in STAGE_DIRS.values():
+            final = self.root / name
+            for old in self.root.glob(f".{name}.old-*"):
+                if not final.exists():
+                    old.rename(final)
+                else:
+                    shutil.rmtree(old, ignore_errors=True)
+            for tmp in self.root.glob(f".{name}.tmp-*"):
+                shutil.rmtree(tmp, ignore_errors=True)
+
+    # -- running a stage -------------------------------------------------------------------------
+    @contextlib.contextmanager
+    def stage_run(self, stage: str, config: dict[str, Any], fp: str) -> Iterator[StageRun]:
+        """Stage outputs go to a staging folder, swapped in with the manifest only on success."""
+        name = STAGE_DIRS[stage]
+        staging = self.root / f".{name}.tmp-{os.getpid()}"
+        shutil.rmtree(staging, ignore_errors=True)
+        staging.mkdir(parents=True)
+        run = StageRun(stage, staging)
+        t0 = time.perf_counter()
+        try:
+            yield run
+        except BaseException:
+            shutil.rmtree(staging, ignore_errors=True)
+            raise
+        manifest = {
+            "stage": stage,
+            "status": "done",
+            "fingerprint": fp,
+            "upstream": self.upstream_fingerprints(stage),
+            "config": config,
+            "version": __version__,
+            "wall_time_s": round(time.perf_counter() - t0, 3),
+            "peak_memory_mb": round(peak_memory_mb(), 1),
+            "finished": time.strftime("%Y-%m-%d %H:%M:%S"),
+            **run.record,
+        }
+        atomic_write_json(staging / MANIFEST, manifest)
+        final = self.root / name
+        old = self.root / f".{name}.old-{os.getpid()}"
+        if final.exists():
+            final.rename(old)
+        staging.rename(final)
+        shutil.rmtree(old, ignore_errors=True)
+        # Downstream stages are now stale through their recorded upstream fingerprints.
+
+
+def _read_lock(path: Path) -> dict[str, Any] | None:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+
+
+def _lock_alive(holder: dict[str, Any]) -> bool:
+    if holder.get("host") != socket.gethostname():
+        return True  # cannot check another host's processes: assume alive
+    pid = holder.get("pid")
+    if not isinstance(pid, int) or pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
