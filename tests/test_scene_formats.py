@@ -110,3 +110,39 @@ def test_decompose_projection():
     np.testing.assert_allclose(K2, K, atol=1e-9)
     np.testing.assert_allclose(w2c[:3, :3], R, atol=1e-9)
     np.testing.assert_allclose(w2c[:3, 3], t, atol=1e-9)
+
+
+def test_colmap_distorted_is_undistorted(scene_formats, tmp_path):
+    """An OPENCV camera is undistorted through pycolmap into a pinhole model."""
+    import shutil
+
+    import pycolmap
+
+    d = tmp_path / "colmap"
+    shutil.copytree(scene_formats["colmap"], d)
+    rec = pycolmap.Reconstruction(str(d / "sparse" / "0"))
+    for cam in rec.cameras.values():
+        fx, fy, cx, cy = cam.params
+        rec.cameras[cam.camera_id] = pycolmap.Camera(camera_id=cam.camera_id, model="OPENCV", width=cam.width,
+                                                     height=cam.height, params=[fx, fy, cx, cy, 0.05, 0, 0, 0])
+    rec.write_text(str(d / "sparse" / "0"))
+    ws = prepare(d, tmp_path / "ws")
+    sc = load_prepared(ws)
+    f = sc.train[0]
+    assert f.image.shape[:2] == (f.height, f.width) and f.mask is not None
+    assert abs(f.width - 48) <= 4
+
+
+def test_colmap_uses_images_k(scene_formats, tmp_path):
+    import shutil
+
+    from wgs.scene.images import read_image, write_png
+
+    d = tmp_path / "colmap"
+    shutil.copytree(scene_formats["colmap"], d)
+    for p in (d / "images").iterdir():
+        write_png(d / "images_2" / p.name, np.full((24, 24, 3), 0.25, np.float32))  # recognisable
+    ws = prepare(d, tmp_path / "ws", "--downscale", "2")
+    img = read_image(ws.stage_dir("scene") / "images" / load_prepared(ws).train[0].name)
+    assert img.shape[:2] == (24, 24) and abs(float(img.mean()) - 0.25) < 0.01
+    assert abs(load_prepared(ws).train[0].K[0, 0].item() - 0.5 * read_scene(d).views[0].K[0, 0]) < 1e-4

@@ -63,8 +63,17 @@ def _out_name(v: View) -> str:
     return Path(v.name.replace("/", "__")).stem + ".png"
 
 
-def _load_view(v: View, cfg: PrepareConfig) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+def _prescaled(v: View, root: Path, k: int) -> Path | None:
+    """COLMAP's `images_K/` copy of a pinhole view, when the scene ships one."""
+    if k <= 1 or v.distortion is not None:
+        return None
+    cand = root / f"images_{k}" / v.name
+    return cand if cand.is_file() else None
+
+
+def _load_view(v: View, cfg: PrepareConfig, root: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     """Read, check, undistort and downscale one view -> rgb [H,W,3], mask [H,W] or None, K."""
+    small = _prescaled(v, root, cfg.downscale)
     img = read_image(v.image, cfg.max_pixels)
     h, w = img.shape[:2]
     if (w, h) != (v.width, v.height):
@@ -80,7 +89,15 @@ def _load_view(v: View, cfg: PrepareConfig) -> tuple[np.ndarray, np.ndarray | No
         rgb, K, extra = undistort(rgb, v.distortion, K, w, h, [mask] if mask is not None else None)
         mask = extra[0] if extra else None
     k = cfg.downscale
-    if k > 1:
+    if small is not None:
+        rgb = split_rgba(read_image(small, cfg.max_pixels))[0]
+        sh, sw = rgb.shape[:2]
+        if mask is not None:
+            mask = downscale(np.zeros((h, w, 3), np.float32), mask, k)[1][:sh, :sw]
+            if mask.shape != (sh, sw):
+                raise InputError(f"image is {sw}x{sh}, expected {w // k}x{h // k} for images_{k}/", small)
+        K = scale_intrinsics(K, sw / w, sh / h)
+    elif k > 1:
         rgb, mask = downscale(rgb, mask, k)
         K = scale_intrinsics(K, 1.0 / k, 1.0 / k)
     if mask is not None:
@@ -103,7 +120,7 @@ def prepare(scene: RawScene, cfg: PrepareConfig, run: StageRun) -> dict[str, Any
     for split in ("train", "test"):
         for i in ids[split]:
             v = scene.views[i]
-            rgb, mask, K = _load_view(v, cfg)
+            rgb, mask, K = _load_view(v, cfg, scene.root)
             name = _out_name(v)
             if name in used:
                 raise InputError(f"two images map to the same name {name}", v.image)

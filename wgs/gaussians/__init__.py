@@ -1,0 +1,1 @@
+"""3D Gaussian splatting: parameters, projection, rasterization, densification, training."""
