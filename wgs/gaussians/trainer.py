@@ -1,0 +1,139 @@
+"""The 3DGS training loop shared by the coarse, mask-data and fine stages.
+
+Adam per parameter group with 3DGS learning rates (means scaled by the scene extent, exponentially
+decayed), L = 0.8·L1 + 0.2·(1 - SSIM) (+ a small alpha-vs-mask term when masks exist), random
+backgrounds when masks exist, SH degree raised on a schedule, densification and floater removal.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import kornia
+import torch
+
+from ..config import TrainConfig
+from ..errors import WgsError
+from ..progress import progress_bar
+from ..scene.dataset import Frame
+from .init import floater_mask
+from .render import rasterize
+from .splats import Splats, activate
+from .strategy import DensifyStrategy, remove
+
+# (frame index, iteration) -> per-pixel supervision weight [H, W] in [0, 1], or None for all pixels
+PixelWeights = Callable[[int, int], torch.Tensor | None]
+
+
+@dataclass
+class TrainResult:
+    splats: Splats
+    iterations: int
+    seconds: float
+    losses: list[float] = field(default_factory=list)
+
+
+def make_optimizers(params: Splats, cfg: TrainConfig, extent: float) -> dict[str, torch.optim.Optimizer]:
+    lrs = {"means": cfg.lr_means * extent, "quats": cfg.lr_quats, "scales": cfg.lr_scales,
+           "opacities": cfg.lr_opacities, "sh0": cfg.lr_sh0, "shN": cfg.lr_shN}
+    return {k: torch.optim.Adam([{"params": [params[k]], "lr": lr, "name": k}], eps=1e-15) for k, lr in lrs.items()}
+
+
+def strategy_from(cfg: TrainConfig, extent: float) -> DensifyStrategy:
+    return DensifyStrategy(grad_threshold=cfg.grad_threshold, prune_opacity=cfg.prune_opacity,
+                           grow_scale3d=cfg.grow_scale3d, prune_scale3d=cfg.prune_scale3d,
+                           refine_start=cfg.refine_start, refine_stop=cfg.refine_stop, refine_every=cfg.refine_every,
+                           reset_every=cfg.reset_every, max_gaussians=cfg.max_gaussians, scene_extent=extent)
+
+
+def photometric_loss(render: torch.Tensor, target: torch.Tensor, ssim_weight: float,
+                     weight: torch.Tensor | None = None) -> torch.Tensor:
+    """0.8·L1 + 0.2·(1 - SSIM) on [H, W, 3] images, optionally weighted per pixel by [H, W]."""
+    l1 = (render - target).abs().mean(-1)
+    ssim_map = kornia.metrics.ssim(render.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None], 11)[0].mean(0)
+    per_px = (1 - ssim_weight) * l1 + ssim_weight * (1 - ssim_map)
+    if weight is None:
+        return per_px.mean()
+    return (per_px * weight).sum() / weight.sum().clamp_min(1.0)
+
+
+def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, device: torch.device, *, extent: float,
+                    desc: str = "train", seed: int = 0, pixel_weights: PixelWeights | None = None,
+                    has_masks: bool = True) -> TrainResult:
+    """Optimise `splats` (raw, normalised world) on `frames` (with images). Returns the new splats."""
+    params = {k: v.detach().to(device).clone().requires_grad_(True) for k, v in splats.items()}
+    optimizers = make_optimizers(params, cfg, extent)
+    strategy = strategy_from(cfg, extent)
+    state = strategy.initial_state()
+    gen = torch.Generator().manual_seed(seed)
+    imgs = [f.image.to(device) for f in frames]
+    masks = [f.mask.to(device) if (has_masks and f.mask is not None) else None for f in frames]
+    cams = [(f.viewmat.to(device), f.K.to(device), f.width, f.height) for f in frames]
+    max_deg = int(math.isqrt(1 + params["shN"].shape[1])) - 1
+    decay = (cfg.lr_means_final / cfg.lr_means) ** (1.0 / max(cfg.iterations, 1))
+    losses: list[float] = []
+    order: list[int] = []
+    t0 = time.perf_counter()
+    it = 0
+    with progress_bar(desc, cfg.iterations) as prog:
+        for it in range(1, cfg.iterations + 1):
+            if not order:
+                order = torch.randperm(len(frames), generator=gen).tolist()
+            i = order.pop()
+            viewmat, K, w, h = cams[i]
+            if masks[i] is not None and cfg.random_background:
+                bg = torch.rand(3, generator=gen).to(device)
+            else:
+                bg = torch.ones(3, device=device) if masks[i] is not None else torch.zeros(3, device=device)
+            target = imgs[i] if masks[i] is None else imgs[i] * masks[i][..., None] + bg * (1 - masks[i][..., None])
+            deg = min(max_deg, (it - 1) // max(cfg.sh_increase_every, 1))
+            means, quats, scales, opac, sh = activate(params)
+            rgb, alpha, meta = rasterize(means, quats, scales, opac, sh[:, : (deg + 1) ** 2], viewmat, K, w, h, bg)
+            weight = pixel_weights(i, it) if pixel_weights is not None else None
+            loss = photometric_loss(rgb, target, cfg.ssim_weight, weight)
+            if masks[i] is not None and cfg.mask_weight > 0:
+                a_err = (alpha[..., 0] - masks[i]).abs()
+                loss = loss + cfg.mask_weight * (a_err.mean() if weight is None else
+                                                 (a_err * weight).sum() / weight.sum().clamp_min(1.0))
+            loss.backward()
+            if not torch.isfinite(loss):
+                raise WgsError(f"{desc}: loss became non-finite at iteration {it}; nothing was saved")
+            strategy.accumulate(state, meta)
+            for name, opt in optimizers.items():
+                if name == "means":
+                    opt.param_groups[0]["lr"] = cfg.lr_means * extent * decay**it
+                opt.step()
+                opt.zero_grad(set_to_none=True)
+            bad = [k for k, p in params.items() if not torch.isfinite(p).all()]
+            if bad:
+                raise WgsError(f"{desc}: parameter group(s) {', '.join(bad)} became non-finite at iteration {it}; "
+                               "nothing was saved")
+            with torch.no_grad():
+                strategy.step(params, optimizers, state, it)
+                if (cfg.floater_every > 0 and it % cfg.floater_every == 0 and it < cfg.refine_stop
+                        and params["means"].shape[0] > 100):
+                    drop = floater_mask(params["means"], cfg.floater_k, cfg.floater_lambda)
+                    if drop.any():
+                        remove(params, optimizers, drop)
+            losses.append(loss.item())
+            if it % cfg.log_every == 0 or it == cfg.iterations:
+                rate = it / max(time.perf_counter() - t0, 1e-9)
+                prog.update(0, completed=it, status=f"loss {sum(losses[-cfg.log_every:]) / len(losses[-cfg.log_every:]):.4f}"
+                            f"  {params['means'].shape[0]} gaussians  {rate:.1f} it/s")
+            if cfg.max_seconds is not None and time.perf_counter() - t0 > cfg.max_seconds:
+                break
+    out = {k: v.detach() for k, v in params.items()}
+    return TrainResult(out, it, time.perf_counter() - t0, losses)
+
+
+@torch.no_grad()
+def render_frame(splats: Splats, frame: Frame, device: torch.device, background: torch.Tensor
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Render a frame's camera: rgb [H, W, 3], alpha [H, W, 1] (CPU tensors)."""
+    means, quats, scales, opac, sh = activate({k: v.to(device) for k, v in splats.items()})
+    rgb, alpha, _ = rasterize(means, quats, scales, opac, sh, frame.viewmat.to(device), frame.K.to(device),
+                              frame.width, frame.height, background.to(device))
+    return rgb.clamp(0, 1).cpu(), alpha.cpu()

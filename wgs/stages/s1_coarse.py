@@ -1,0 +1,84 @@
+"""Stage 1: coarse 3DGS `G_c` on the sparse training views, its renders and their Haar subbands."""
+
+from __future__ import annotations
+
+import torch
+
+from ..config import CoarseConfig, TrainConfig, as_dict
+from ..gaussians.init import knn_mean_distance, random_init, visual_hull
+from ..gaussians.splats import Splats, create_splats, export_ply, save_checkpoint, to_world
+from ..gaussians.trainer import render_frame, train_gaussians
+from ..metrics import psnr
+from ..progress import log
+from ..scene.dataset import PreparedScene, composite, load_prepared
+from ..scene.images import write_png
+from ..wavelet.exr import write_subbands
+from ..wavelet.haar import dwt2
+from ..workspace import StageRun, Workspace, atomic_write_json
+
+CKPT = "ckpt.pt"
+PLY = "point_cloud.ply"
+
+
+def initial_splats(scene: PreparedScene, cfg: TrainConfig, seed: int) -> Splats:
+    """Visual hull of the masks when the scene has them, else random points in the object region."""
+    gen = torch.Generator().manual_seed(seed)
+    if scene.has_masks:
+        pts, cols = visual_hull(scene.train, cfg.hull_resolution, 1.0, cfg.init_points, generator=gen)
+    else:
+        log("coarse: no masks -> no visual hull, no mask loss, no random background (random init)")
+        pts, cols = random_init(cfg.init_points, generator=gen)
+    scales = knn_mean_distance(pts, 3).clamp(1e-4, 0.05)
+    return create_splats(pts, cols, scales, cfg.sh_degree)
+
+
+def background_for(scene: PreparedScene) -> torch.Tensor:
+    """Renders and references on disk are composited on white for masked objects (the datasets' way)."""
+    return torch.ones(3) if scene.has_masks else torch.zeros(3)
+
+
+def subbands_hwc(img: torch.Tensor) -> dict[str, "object"]:
+    """[H, W, 3] -> {"LL","LH","HL","HH": [h, w, 3] numpy} with one Haar level."""
+    ll, [(lh, hl, hh)] = dwt2(img.permute(2, 0, 1)[None].double(), 1)
+    return {n: b[0].permute(1, 2, 0).float().numpy() for n, b in (("LL", ll), ("LH", lh), ("HL", hl), ("HH", hh))}
+
+
+def write_coarse_outputs(run: StageRun, scene: PreparedScene, splats: Splats, device: torch.device) -> dict:
+    bg = background_for(scene)
+    per_view = {}
+    for f in scene.train:
+        ref = composite(f.image, f.mask, bg)
+        rgb, _ = render_frame(splats, f, device, bg)
+        write_png(run.path("renders", f.name), rgb.numpy())
+        stem = f.name.rsplit(".", 1)[0]
+        write_subbands(run.path("subbands", "ref", f"{stem}.exr"), subbands_hwc(ref))
+        write_subbands(run.path("subbands", "render", f"{stem}.exr"), subbands_hwc(rgb))
+        per_view[f.name] = psnr(rgb, ref)
+    return per_view
+
+
+def run_coarse(ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: int, force: bool = False) -> bool:
+    config = as_dict(cfg)
+    with ws.lock():
+        fp = ws.stage_fingerprint("coarse", config, {"seed": seed})
+        if not force and ws.status("coarse", fp) == "fresh":
+            log("coarse: up to date, skipped")
+            return False
+        scene = load_prepared(ws)
+        torch.manual_seed(seed)
+        splats = initial_splats(scene, cfg, seed)
+        log(f"coarse: {splats['means'].shape[0]} initial Gaussians, {len(scene.train)} views, "
+            f"{cfg.iterations} iterations on {device}")
+        with ws.stage_run("coarse", config, fp) as run:
+            res = train_gaussians(splats, scene.train, cfg, device, extent=1.0, desc="coarse", seed=seed,
+                                  has_masks=scene.has_masks)
+            save_checkpoint(run.path(CKPT), res.splats, scene.norm, res.iterations)
+            n_ply = export_ply(run.path(PLY), to_world(res.splats, scene.norm))
+            per_view = write_coarse_outputs(run, scene, res.splats, device)
+            atomic_write_json(run.path("train_psnr.json"), per_view)
+            mean_psnr = sum(per_view.values()) / len(per_view)
+            run.record.update({"num_gaussians": n_ply, "iterations": res.iterations,
+                               "train_seconds": round(res.seconds, 2), "final_loss": res.losses[-1],
+                               "train_psnr": round(mean_psnr, 3), "seed": seed, "device": str(device)})
+    log(f"coarse: {n_ply} Gaussians, training-view PSNR {mean_psnr:.2f} dB, {res.seconds:.1f} s")
+    return True
