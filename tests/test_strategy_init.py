@@ -4,11 +4,11 @@ import math
 
 import torch
 
+from wgs.config import TrainConfig
 from wgs.gaussians.init import floater_mask, knn_mean_distance, visual_hull
 from wgs.gaussians.splats import create_splats
 from wgs.gaussians.strategy import DensifyStrategy, remove, reset_opacity, split
 from wgs.gaussians.trainer import make_optimizers
-from wgs.config import TrainConfig
 from wgs.scene.dataset import Frame
 from wgs.stages.render_views import look_at
 

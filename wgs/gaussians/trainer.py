@@ -121,8 +121,9 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
             losses.append(loss.item())
             if it % cfg.log_every == 0 or it == cfg.iterations:
                 rate = it / max(time.perf_counter() - t0, 1e-9)
-                prog.update(0, completed=it, status=f"loss {sum(losses[-cfg.log_every:]) / len(losses[-cfg.log_every:]):.4f}"
-                            f"  {params['means'].shape[0]} gaussians  {rate:.1f} it/s")
+                recent = losses[-cfg.log_every:]
+                prog.update(0, completed=it, status=f"loss {sum(recent) / len(recent):.4f}  "
+                            f"{params['means'].shape[0]} gaussians  {rate:.1f} it/s")
             if cfg.max_seconds is not None and time.perf_counter() - t0 > cfg.max_seconds:
                 break
     out = {k: v.detach() for k, v in params.items()}

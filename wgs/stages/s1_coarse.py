@@ -37,7 +37,7 @@ def background_for(scene: PreparedScene) -> torch.Tensor:
     return torch.ones(3) if scene.has_masks else torch.zeros(3)
 
 
-def subbands_hwc(img: torch.Tensor) -> dict[str, "object"]:
+def subbands_hwc(img: torch.Tensor) -> dict[str, object]:
     """[H, W, 3] -> {"LL","LH","HL","HH": [h, w, 3] numpy} with one Haar level."""
     ll, [(lh, hl, hh)] = dwt2(img.permute(2, 0, 1)[None].double(), 1)
     return {n: b[0].permute(1, 2, 0).float().numpy() for n, b in (("LL", ll), ("LH", lh), ("HL", hl), ("HH", hh))}
