@@ -25,6 +25,7 @@ examples/scene/transforms_train.json: examples/make_scene.py | $(VENV)/.installe
 demo: $(VENV)/.installed examples/scene/transforms_train.json
 	$(BIN)/wgs -w $(DEMO_WS) prepare examples/scene
 	$(BIN)/wgs -w $(DEMO_WS) coarse --preset fast
+	$(BIN)/wgs -w $(DEMO_WS) render --views test
 	$(BIN)/wgs -w $(DEMO_WS) info
 
 test: $(VENV)/.installed

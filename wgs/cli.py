@@ -16,7 +16,7 @@ import click
 from . import __version__
 from .config import as_dict, load_config_file, resolve
 from .errors import WgsError
-from .progress import console, log, set_quiet
+from .progress import console, log, results, set_quiet
 from .workspace import STAGE_DIRS, Workspace
 
 HELP = """WaveletGaussian: sparse-view 3D Gaussian object reconstruction.
@@ -125,8 +125,8 @@ def info(obj: Ctx) -> None:
         s = m.get("summary", {})
         res = s.get("resolution")
         res_txt = f"{res[0]}x{res[1]}" if res and isinstance(res[0], int) else str(res)
-        console.print(f"scene: {s.get('source')} ({s.get('format')})", soft_wrap=True)
-        console.print(f"  {s.get('num_train')} training views, {s.get('num_test')} test views, "
+        results.print(f"scene: {s.get('source')} ({s.get('format')})", soft_wrap=True)
+        results.print(f"  {s.get('num_train')} training views, {s.get('num_test')} test views, "
                       f"{res_txt} images, {'with' if s.get('has_masks') else 'without'} masks")
     table = Table(title=f"workspace {ws.root}")
     for col in ("stage", "folder", "status", "wall time", "finished"):
@@ -138,7 +138,7 @@ def info(obj: Ctx) -> None:
         wt = mm.get("wall_time_s")
         table.add_row(stage, folder + "/", f"[{colour}]{st}[/]", f"{wt:.1f} s" if wt is not None else "",
                       mm.get("finished", ""))
-    console.print(table)
+    results.print(table)
 
 
 def _register_stages() -> None:

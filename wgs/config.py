@@ -44,7 +44,7 @@ class TrainConfig:
     ssim_weight: float = 0.2
     mask_weight: float = 0.1
     random_background: bool = True
-    init_points: int = 20000  # visual-hull points at most
+    init_points: int = 5000  # visual-hull points at most (more fits the training views worse at equal time)
     hull_resolution: int = 96
     # densification (gsplat DefaultStrategy-like)
     refine_start: int = 300
@@ -72,7 +72,7 @@ STAGES: dict[str, type] = {"prepare": PrepareConfig, "coarse": CoarseConfig}
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "fast": {
         "coarse": {"iterations": 400, "refine_start": 100, "refine_stop": 300, "refine_every": 50,
-                   "sh_degree": 1, "sh_increase_every": 200, "init_points": 5000, "hull_resolution": 64,
+                   "sh_degree": 1, "sh_increase_every": 200, "init_points": 3000, "hull_resolution": 64,
                    "max_gaussians": 20000, "floater_every": 200},
     },
     "default": {},

@@ -8,7 +8,8 @@ from collections.abc import Iterator
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-console = Console(stderr=True, highlight=False)
+console = Console(stderr=True, highlight=False)  # progress and logs
+results = Console(highlight=False)  # what a command was asked to show (stdout, never silenced)
 _quiet = False
 
 
