@@ -9,7 +9,7 @@ from __future__ import annotations
 import dataclasses
 import types
 import typing
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -67,13 +67,58 @@ class CoarseConfig(TrainConfig):
     iterations: int = 1500
 
 
-STAGES: dict[str, type] = {"prepare": PrepareConfig, "coarse": CoarseConfig}
+@dataclass
+class MaskDataConfig(TrainConfig):
+    """Training of G_d (or the N leave-one-out models) and the corrupted/clean pairs it yields."""
+
+    iterations: int = 1500
+    strategy: str = "orm"  # orm | offline-rm | loo
+    n_regions: int = 10
+    coverage: float = 0.5  # fraction of the object's mask area hidden at any time
+    drift: float = 0.08  # sinusoidal displacement amplitude, fraction of the object's size
+    drift_period: float = 400.0  # iterations
+    warmup: int = 500  # no pairs before this iteration
+    pair_every: int = 100
+
+
+@dataclass
+class FinetuneConfig:
+    """The LL-domain repair diffusion model D and the HF U-Net U."""
+
+    domain: str = "wavelet"  # wavelet: D on the LL subband + U on HF; rgb: D on RGB, no U
+    use_u: bool = True
+    train_timesteps: int = 1000
+    d_channels: int = 32  # base width; the U-Net uses (c, 2c, 2c)
+    d_steps: int = 1500
+    d_batch: int = 16
+    d_crop: int = 32
+    d_lr: float = 2e-4
+    ema_decay: float = 0.995
+    u_channels: int = 16
+    u_max_steps: int = 1500
+    u_batch: int = 16
+    u_crop: int = 32
+    u_lr: float = 1e-3
+    u_eval_every: int = 50
+    u_patience: int = 5
+    holdout: float = 0.15  # fraction of pairs kept out of training to measure D
+    eval_strength: float = 0.5  # SDEdit strength of the held-out check
+    eval_steps: int = 10
+
+
+STAGES: dict[str, type] = {"prepare": PrepareConfig, "coarse": CoarseConfig, "mask_data": MaskDataConfig,
+                           "finetune": FinetuneConfig}
+
+# Small budgets for the bundled example (`make demo`), shared by every 3DGS training stage.
+_FAST_TRAIN = {"refine_start": 100, "refine_every": 50, "sh_degree": 1, "sh_increase_every": 200,
+               "init_points": 3000, "hull_resolution": 64, "max_gaussians": 20000, "floater_every": 200}
 
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "fast": {
-        "coarse": {"iterations": 400, "refine_start": 100, "refine_stop": 300, "refine_every": 50,
-                   "sh_degree": 1, "sh_increase_every": 200, "init_points": 3000, "hull_resolution": 64,
-                   "max_gaussians": 20000, "floater_every": 200},
+        "coarse": {**_FAST_TRAIN, "iterations": 400, "refine_stop": 300},
+        "mask_data": {**_FAST_TRAIN, "iterations": 300, "refine_stop": 250, "warmup": 100, "pair_every": 40,
+                      "drift_period": 100.0},
+        "finetune": {"d_steps": 300, "u_max_steps": 300, "d_channels": 16, "u_eval_every": 25},
     },
     "default": {},
     "paper": {
@@ -152,12 +197,20 @@ def resolve(stage: str, preset: str | None = None, file_cfg: dict[str, Any] | No
     values.update((file_cfg or {}).get(stage, {}))
     values.update({k: v for k, v in (cli or {}).items() if v is not None})
     check_table(cls, values, stage)
-    return cls(**values)
+    cfg = cls(**values)
+    check_choices(cfg)
+    return cfg
 
 
 def as_dict(cfg: Any) -> dict[str, Any]:
     return dataclasses.asdict(cfg)
 
 
-__all__ = ["PrepareConfig", "TrainConfig", "CoarseConfig", "STAGES", "PRESETS", "resolve",
-           "load_config_file", "as_dict", "check_table", "field"]
+CHOICES: dict[str, tuple[str, ...]] = {"strategy": ("orm", "offline-rm", "loo"), "domain": ("wavelet", "rgb")}
+
+
+def check_choices(cfg: Any) -> None:
+    for key, allowed in CHOICES.items():
+        v = getattr(cfg, key, None)
+        if v is not None and v not in allowed:
+            raise InputError(f"'{key}' must be one of {', '.join(allowed)}, got {v!r}")

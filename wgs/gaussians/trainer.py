@@ -62,8 +62,12 @@ def photometric_loss(render: torch.Tensor, target: torch.Tensor, ssim_weight: fl
 
 def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, device: torch.device, *, extent: float,
                     desc: str = "train", seed: int = 0, pixel_weights: PixelWeights | None = None,
-                    has_masks: bool = True) -> TrainResult:
-    """Optimise `splats` (raw, normalised world) on `frames` (with images). Returns the new splats."""
+                    has_masks: bool = True, on_step: Callable[[int, Splats], None] | None = None) -> TrainResult:
+    """Optimise `splats` (raw, normalised world) on `frames` (with images). Returns the new splats.
+
+    pixel_weights(i, it) -> [H, W] supervision weights for frame i (None: all pixels count);
+    on_step(it, params) is called after every iteration with the current (detached) parameters.
+    """
     params = {k: v.detach().to(device).clone().requires_grad_(True) for k, v in splats.items()}
     optimizers = make_optimizers(params, cfg, extent)
     strategy = strategy_from(cfg, extent)
@@ -119,6 +123,8 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
                     if drop.any():
                         remove(params, optimizers, drop)
             losses.append(loss.item())
+            if on_step is not None:
+                on_step(it, {k: v.detach() for k, v in params.items()})
             if it % cfg.log_every == 0 or it == cfg.iterations:
                 rate = it / max(time.perf_counter() - t0, 1e-9)
                 recent = losses[-cfg.log_every:]

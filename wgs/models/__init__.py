@@ -1,0 +1,1 @@
+"""Repair networks (one per file), the diffusion scheduler, and their safetensors storage."""

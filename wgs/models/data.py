@@ -1,0 +1,69 @@
+"""Repair-model data: value normalisation (one place), pair loading, random crops."""
+
+from __future__ import annotations
+
+import torch
+
+from ..errors import InputError
+from ..wavelet.exr import read_subbands
+from ..workspace import Workspace, read_json
+
+# LL of an image in [0, 1] lies in [0, 2] (orthonormal Haar: 2 x block mean); RGB in [0, 1].
+RANGES = {"wavelet": (0.0, 2.0), "rgb": (0.0, 1.0)}
+
+
+def to_model(x: torch.Tensor, domain: str) -> torch.Tensor:
+    """Map values of the domain's range to [-1, 1]."""
+    lo, hi = RANGES[domain]
+    return (x - lo) * (2.0 / (hi - lo)) - 1.0
+
+
+def from_model(x: torch.Tensor, domain: str) -> torch.Tensor:
+    lo, hi = RANGES[domain]
+    return (x + 1.0) * ((hi - lo) / 2.0) + lo
+
+
+def hwc(a) -> torch.Tensor:
+    """numpy [H, W, C] -> tensor [C, H, W]."""
+    return torch.from_numpy(a).permute(2, 0, 1).contiguous()
+
+
+def load_pairs(ws: Workspace, domain: str) -> tuple[torch.Tensor, torch.Tensor, list[dict]]:
+    """Clean and corrupted images of every pair, [P, 3, h, w] each, in model space ([-1, 1])."""
+    index_path = ws.stage_dir("mask_data") / "index.json"
+    index = read_json(index_path)
+    pairs = index.get("pairs", [])
+    if not pairs:
+        raise InputError("the mask-data index lists no pairs (too few iterations after the warm-up?)", index_path)
+    key, clean_band, bad_band = ("ll", "LL", "cLL") if domain == "wavelet" else ("rgb", "RGB", "cRGB")
+    clean, bad = [], []
+    for p in pairs:
+        bands = read_subbands(ws.stage_dir("mask_data") / p[key])
+        if clean_band not in bands or bad_band not in bands:
+            raise InputError(f"pair file lacks {clean_band}/{bad_band}", ws.stage_dir("mask_data") / p[key])
+        clean.append(hwc(bands[clean_band]))
+        bad.append(hwc(bands[bad_band]))
+    return to_model(torch.stack(clean), domain), to_model(torch.stack(bad), domain), pairs
+
+
+def random_crops(tensors: list[torch.Tensor], idx: torch.Tensor, size: int, gen: torch.Generator,
+                 flip: bool = True, align: int = 1) -> list[torch.Tensor]:
+    """The same random crop (and flips) of each tensor [P, C, H, W] at images idx -> [B, C, s, s].
+
+    align: crop offsets are multiples of it (2 keeps Haar blocks intact).
+    """
+    h, w = tensors[0].shape[-2:]
+    s = min(size, h, w)
+    out: list[list[torch.Tensor]] = [[] for _ in tensors]
+    for i in idx.tolist():
+        y = int(torch.randint(0, (h - s) // align + 1, (1,), generator=gen)) * align
+        x = int(torch.randint(0, (w - s) // align + 1, (1,), generator=gen)) * align
+        fx, fy = (bool(torch.rand(1, generator=gen) < 0.5) for _ in range(2)) if flip else (False, False)
+        for j, t in enumerate(tensors):
+            c = t[i, :, y:y + s, x:x + s]
+            if fx:
+                c = c.flip(-1)
+            if fy:
+                c = c.flip(-2)
+            out[j].append(c)
+    return [torch.stack(o) for o in out]

@@ -1,0 +1,48 @@
+"""Models on disk: `config.json` + `model.safetensors` per model folder (no pickle)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save_file
+
+from ..errors import InputError
+from ..workspace import atomic_path, atomic_write_json
+from .hf_unet import HFUNet, HFUNetConfig
+from .ll_denoiser import LLDenoiser, LLDenoiserConfig
+
+CLASSES = {"LLDenoiser": (LLDenoiser, LLDenoiserConfig), "HFUNet": (HFUNet, HFUNetConfig)}
+
+
+def save_model(folder: Path, model: torch.nn.Module, extra: dict | None = None) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    with atomic_path(folder / "model.safetensors") as tmp:
+        save_file({k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}, str(tmp))
+    atomic_write_json(folder / "config.json", {**model.config_dict(), **(extra or {})})
+
+
+def load_model(folder: Path, device: torch.device | str = "cpu") -> tuple[torch.nn.Module, dict]:
+    cfg_path, w_path = folder / "config.json", folder / "model.safetensors"
+    try:
+        cfg = json.loads(cfg_path.read_text())
+    except FileNotFoundError:
+        raise InputError("model config not found", cfg_path) from None
+    except json.JSONDecodeError as exc:
+        raise InputError(f"not valid JSON ({exc})", cfg_path) from None
+    name = cfg.get("class")
+    if name not in CLASSES:
+        raise InputError(f"unknown model class {name!r}", cfg_path)
+    cls, cfg_cls = CLASSES[name]
+    fields = {k: cfg[k] for k in cfg_cls.__dataclass_fields__ if k in cfg}
+    model = cls(cfg_cls(**fields))
+    try:
+        state = load_file(str(w_path))
+        model.load_state_dict(state)
+    except FileNotFoundError:
+        raise InputError("model weights not found", w_path) from None
+    except (SafetensorError, RuntimeError, OSError) as exc:
+        raise InputError(f"weights do not fit the model ({str(exc).splitlines()[0][:200]})", w_path) from None
+    return model.to(device).eval(), cfg

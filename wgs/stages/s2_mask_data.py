@@ -1,0 +1,131 @@
+"""Stage 2: corrupted/clean training pairs for the repair models.
+
+Strategies: `orm` (online random masking, the default: ONE model G_d whose references are partly
+hidden under drifting random masks), `offline-rm` (the same masks, not drifting) and `loo`
+(GaussianObject's leave-one-out: N models, each without one view). At regular intervals after a
+warm-up the models are rendered at the training views; each (render, reference) pair is stored
+as Haar subbands (LL pairs for D) and as RGB (for the RGB-domain ablation). HF pairs for U are
+the coarse stage's subbands of its renders and references, listed in the index.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import torch
+
+from ..config import MaskDataConfig, as_dict
+from ..errors import InputError
+from ..gaussians.splats import Splats
+from ..gaussians.trainer import render_frame, train_gaussians
+from ..masking import make_region_masks
+from ..progress import log
+from ..scene.dataset import PreparedScene, composite, load_prepared
+from ..wavelet.exr import write_subbands
+from ..workspace import STAGE_DIRS, StageRun, Workspace, atomic_write_json
+from .s1_coarse import background_for, initial_splats, subbands_hwc
+
+INDEX = "index.json"
+
+
+class PairWriter:
+    """Renders models at training views and writes (corrupted, clean) pairs."""
+
+    def __init__(self, run: StageRun, scene: PreparedScene, device: torch.device, strategy: str):
+        self.run, self.scene, self.device, self.strategy = run, scene, device, strategy
+        self.bg = background_for(scene)
+        self.refs = [composite(f.image, f.mask, self.bg) for f in scene.train]
+        self.ref_bands = [subbands_hwc(r) for r in self.refs]
+        self.pairs: list[dict[str, Any]] = []
+
+    def write(self, splats: Splats, view: int, it: int, hidden: torch.Tensor | None, model: str) -> None:
+        f = self.scene.train[view]
+        render, _ = render_frame(splats, f, self.device, self.bg)
+        stem = f"{f.name.rsplit('.', 1)[0]}_{model}_{it:06d}"
+        hid = torch.zeros(f.height, f.width) if hidden is None else hidden
+        # hidden area at LL resolution: the fraction of each 2x2 block that was hidden
+        hid_ll = subbands_hwc(hid[..., None].repeat(1, 1, 3))["LL"][..., :1] / 2.0
+        ll_file = f"pairs/ll/{stem}.exr"
+        write_subbands(self.run.path(ll_file), {"LL": self.ref_bands[view]["LL"],
+                                                "cLL": subbands_hwc(render)["LL"], "M": hid_ll})
+        rgb_file = f"pairs/rgb/{stem}.exr"
+        write_subbands(self.run.path(rgb_file), {"RGB": self.refs[view].numpy(), "cRGB": render.numpy(),
+                                                 "M": hid[..., None].numpy()})
+        self.pairs.append({"id": len(self.pairs), "view": f.name, "iteration": it, "model": model,
+                           "ll": ll_file, "rgb": rgb_file})
+
+
+def run_orm(cfg: MaskDataConfig, scene: PreparedScene, device: torch.device, seed: int, writer: PairWriter
+            ) -> dict[str, Any]:
+    objects = torch.stack([f.mask if f.mask is not None else torch.ones(f.height, f.width) for f in scene.train])
+    regions = make_region_masks(objects, cfg.n_regions, cfg.coverage, cfg.drift, cfg.drift_period,
+                                offline=cfg.strategy == "offline-rm", seed=seed)
+
+    def weights(i: int, it: int) -> torch.Tensor:
+        return (1.0 - regions.hidden(i, it)).to(device)
+
+    def snapshot(it: int, params: Splats) -> None:
+        if it >= cfg.warmup and it % cfg.pair_every == 0:
+            for v in range(len(scene.train)):
+                writer.write(params, v, it, regions.hidden(v, it), "gd")
+
+    res = train_gaussians(initial_splats(scene, cfg, seed), scene.train, cfg, device, extent=1.0,
+                          desc=f"mask-data {cfg.strategy}", seed=seed, pixel_weights=weights,
+                          has_masks=scene.has_masks, on_step=snapshot)
+    return {"models": 1, "iterations": res.iterations}
+
+
+def run_loo(cfg: MaskDataConfig, scene: PreparedScene, device: torch.device, seed: int, writer: PairWriter
+            ) -> dict[str, Any]:
+    n = len(scene.train)
+    for left_out in range(n):
+        keep = [f for i, f in enumerate(scene.train) if i != left_out]
+        sub = PreparedScene(scene.info, scene.norm, keep, [])
+
+        def snapshot(it: int, params: Splats, v: int = left_out) -> None:
+            if it >= cfg.warmup and it % cfg.pair_every == 0:
+                writer.write(params, v, it, None, f"loo{v}")
+
+        train_gaussians(initial_splats(sub, cfg, seed), keep, cfg, device, extent=1.0,
+                        desc=f"mask-data loo {left_out + 1}/{n}", seed=seed, has_masks=scene.has_masks,
+                        on_step=snapshot)
+    return {"models": n, "iterations": cfg.iterations * n}
+
+
+def hf_pairs(ws: Workspace, scene: PreparedScene) -> list[dict[str, str]]:
+    coarse = STAGE_DIRS["coarse"]
+    out = []
+    for f in scene.train:
+        stem = f.name.rsplit(".", 1)[0]
+        out.append({"view": f.name, "render": f"{coarse}/subbands/render/{stem}.exr",
+                    "ref": f"{coarse}/subbands/ref/{stem}.exr"})
+    for p in out:
+        for k in ("render", "ref"):
+            if not (ws.root / p[k]).is_file():
+                raise InputError("coarse subband file missing: rerun `wgs coarse --force`", ws.root / p[k])
+    return out
+
+
+def run_mask_data(ws: Workspace, cfg: MaskDataConfig, device: torch.device, seed: int, force: bool = False) -> bool:
+    config = as_dict(cfg)
+    with ws.lock():
+        fp = ws.stage_fingerprint("mask_data", config, {"seed": seed})
+        if not force and ws.status("mask_data", fp) == "fresh":
+            log("mask-data: up to date, skipped")
+            return False
+        if ws.manifest("coarse") is None:
+            raise InputError("the coarse stage has not run: run `wgs coarse` first", ws.stage_dir("coarse"))
+        scene = load_prepared(ws)
+        torch.manual_seed(seed)
+        with ws.stage_run("mask_data", config, fp) as run:
+            writer = PairWriter(run, scene, device, cfg.strategy)
+            t0 = time.perf_counter()
+            stats = (run_loo if cfg.strategy == "loo" else run_orm)(cfg, scene, device, seed, writer)
+            seconds = time.perf_counter() - t0
+            atomic_write_json(run.path(INDEX), {"strategy": cfg.strategy, "pairs": writer.pairs,
+                                                "hf_pairs": hf_pairs(ws, scene)})
+            run.record.update({"strategy": cfg.strategy, "num_pairs": len(writer.pairs),
+                               "strategy_seconds": round(seconds, 2), **stats})
+    log(f"mask-data: {cfg.strategy}, {len(writer.pairs)} pairs from {stats['models']} model(s) in {seconds:.1f} s")
+    return True

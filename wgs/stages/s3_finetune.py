@@ -1,0 +1,222 @@
+"""Stage 3: train the repair diffusion model D (LL subband, or RGB for the ablation) and the HF
+U-Net U (early stopping), each saved as config.json + model.safetensors under `3_finetune/`."""
+
+from __future__ import annotations
+
+import copy
+import math
+import time
+from typing import Any
+
+import torch
+
+from ..config import FinetuneConfig, as_dict
+from ..errors import InputError
+from ..metrics import psnr
+from ..models.data import hwc, load_pairs, random_crops
+from ..models.hf_unet import HFUNet, HFUNetConfig
+from ..models.ll_denoiser import LLDenoiser, LLDenoiserConfig
+from ..models.sampling import sdedit_repair
+from ..models.scheduler import DDIMScheduler
+from ..models.storage import save_model
+from ..progress import log, progress_bar
+from ..wavelet.exr import read_subbands
+from ..wavelet.haar import dwt2, idwt2, stack_highs
+from ..workspace import StageRun, Workspace, atomic_write_json, read_json
+
+
+def split_holdout(n: int, frac: float, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    perm = torch.randperm(n, generator=gen)
+    k = min(n - 1, max(1, round(frac * n))) if n > 1 else 0
+    return perm[k:], perm[:k]
+
+
+def train_denoiser(cfg: FinetuneConfig, clean: torch.Tensor, bad: torch.Tensor, device: torch.device,
+                   gen: torch.Generator) -> tuple[LLDenoiser, dict[str, list[float]]]:
+    """Denoising training (sample prediction, MSE to the clean crop) on random crops of (clean,
+    corrupted) pairs [P, 3, h, w]; returns the EMA weights."""
+    model = LLDenoiser(LLDenoiserConfig(3, cfg.d_channels)).to(device)
+    ema = copy.deepcopy(model).eval()
+    sched = DDIMScheduler(cfg.train_timesteps)
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.d_lr, weight_decay=0.0)
+    curve: dict[str, list[float]] = {"step": [], "loss": []}
+    acc = 0.0
+    with progress_bar("finetune D", cfg.d_steps) as prog:
+        for step in range(1, cfg.d_steps + 1):
+            idx = torch.randint(clean.shape[0], (cfg.d_batch,), generator=gen)
+            x0, c = (t.to(device) for t in random_crops([clean, bad], idx, cfg.d_crop, gen))
+            t = torch.randint(cfg.train_timesteps, (x0.shape[0],), generator=gen)
+            noise = torch.randn(x0.shape, generator=gen).to(device)
+            loss = torch.nn.functional.mse_loss(model(sched.add_noise(x0, noise, t), t.to(device), c), x0)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+            opt.step()
+            with torch.no_grad():
+                for pe, pm in zip(ema.parameters(), model.parameters(), strict=True):
+                    pe.lerp_(pm, 1 - cfg.ema_decay)
+            acc += loss.item()
+            if step % 25 == 0 or step == cfg.d_steps:
+                n = 25 if step % 25 == 0 else step % 25
+                curve["step"].append(step)
+                curve["loss"].append(acc / n)
+                acc = 0.0
+                prog.update(0, completed=step, status=f"loss {curve['loss'][-1]:.4f}")
+            if not math.isfinite(loss.item()):
+                raise InputError(f"D's training loss became non-finite at step {step}")
+    return ema, curve
+
+
+def load_hf_data(ws: Workspace) -> tuple[torch.Tensor, torch.Tensor, list[str]]:
+    """Coarse renders and references of the training views as images [V, 3, H, W] (from their subbands)."""
+    index = read_json(ws.stage_dir("mask_data") / "index.json")
+    renders, refs, names = [], [], []
+    for p in index["hf_pairs"]:
+        imgs = []
+        for key in ("render", "ref"):
+            b = read_subbands(ws.root / p[key])
+            ll = hwc(b["LL"])[None]
+            hi = [(hwc(b["LH"])[None], hwc(b["HL"])[None], hwc(b["HH"])[None])]
+            imgs.append(idwt2(ll, hi)[0])
+        renders.append(imgs[0])
+        refs.append(imgs[1])
+        names.append(p["view"])
+    return torch.stack(renders), torch.stack(refs), names
+
+
+def hf_batch(render: torch.Tensor, ref: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Images [B, 3, H, W] -> corrupted HF [B, 9, h, w], corrupted LL context, reference HF."""
+    ll_c, [h_c] = dwt2(render, 1)
+    _, [h_r] = dwt2(ref, 1)
+    return stack_highs(h_c), ll_c, stack_highs(h_r)
+
+
+def train_hf_unet(cfg: FinetuneConfig, renders: torch.Tensor, refs: torch.Tensor, device: torch.device,
+                  gen: torch.Generator) -> tuple[HFUNet, dict[str, Any]]:
+    """L1 on HF subbands of augmented crops; early stopping on held-out crops (a held-out view when
+    there are 3 or more, else fixed crops)."""
+    n = renders.shape[0]
+    val_ids = torch.tensor([n - 1]) if n >= 3 else torch.arange(n)
+    train_ids = torch.arange(n - 1) if n >= 3 else torch.arange(n)
+    vgen = torch.Generator().manual_seed(1234)
+    val = random_crops([renders, refs], val_ids.repeat(8), 2 * cfg.u_crop, vgen, align=2)
+    v_hc, v_ll, v_hr = (t.to(device) for t in hf_batch(*val))
+    model = HFUNet(HFUNetConfig(channels=cfg.u_channels)).to(device)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.u_lr)
+    curve: dict[str, Any] = {"step": [], "train": [], "val": []}
+    best, best_state, bad_evals, stopped = math.inf, copy.deepcopy(model.state_dict()), 0, cfg.u_max_steps
+    acc = 0.0
+    with progress_bar("finetune U", cfg.u_max_steps) as prog:
+        for step in range(1, cfg.u_max_steps + 1):
+            idx = train_ids[torch.randint(len(train_ids), (cfg.u_batch,), generator=gen)]
+            hc, ll, hr = (t.to(device) for t in hf_batch(*random_crops([renders, refs], idx, 2 * cfg.u_crop, gen,
+                                                                         align=2)))
+            loss = (model(hc, ll) - hr).abs().mean()
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            acc += loss.item()
+            if step % cfg.u_eval_every == 0:
+                with torch.no_grad():
+                    vl = (model(v_hc, v_ll) - v_hr).abs().mean().item()
+                curve["step"].append(step)
+                curve["train"].append(acc / cfg.u_eval_every)
+                curve["val"].append(vl)
+                acc = 0.0
+                prog.update(0, completed=step, status=f"val L1 {vl:.5f}")
+                if vl < best - 1e-7:
+                    best, best_state, bad_evals = vl, copy.deepcopy(model.state_dict()), 0
+                else:
+                    bad_evals += 1
+                    if bad_evals >= cfg.u_patience:
+                        stopped = step
+                        break
+    model.load_state_dict(best_state)
+    with torch.no_grad():
+        identity = (v_hc - v_hr).abs().mean().item()
+    curve.update({"best_val": best, "identity_val": identity, "stopped_at": stopped})
+    return model.eval(), curve
+
+
+def heldout_check(cfg: FinetuneConfig, model: LLDenoiser, clean: torch.Tensor, bad: torch.Tensor,
+                  device: torch.device) -> dict[str, float]:
+    """Error of held-out corrupted samples against the clean ones, before and after D's repair."""
+    sched = DDIMScheduler(cfg.train_timesteps)
+    with torch.no_grad():
+        rep = sdedit_repair(model, sched, bad.to(device), cfg.eval_strength, cfg.eval_steps,
+                            torch.Generator().manual_seed(0)).cpu()
+    scale = 2.0  # model space [-1, 1] spans a range of 2
+    return {"num_samples": int(clean.shape[0]),
+            "l1_before": float((bad - clean).abs().mean()), "l1_after": float((rep - clean).abs().mean()),
+            "psnr_before": psnr(bad, clean, scale), "psnr_after": psnr(rep.clamp(-1, 1), clean, scale)}
+
+
+def plot_curves(path, curves: dict[str, Any]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.2))
+    d = curves["D"]
+    axes[0].plot(d["step"], d["loss"])
+    axes[0].set(title="D (clean-image MSE)", xlabel="step", yscale="log")
+    if "U" in curves:
+        u = curves["U"]
+        axes[1].plot(u["step"], u["train"], label="train")
+        axes[1].plot(u["step"], u["val"], label="held-out")
+        axes[1].axhline(u["identity_val"], ls="--", c="grey", label="no repair")
+        axes[1].set(title="U (HF L1)", xlabel="step")
+        axes[1].legend()
+    else:
+        axes[1].axis("off")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def run_finetune(ws: Workspace, cfg: FinetuneConfig, device: torch.device, seed: int, force: bool = False) -> bool:
+    config = as_dict(cfg)
+    with ws.lock():
+        fp = ws.stage_fingerprint("finetune", config, {"seed": seed})
+        if not force and ws.status("finetune", fp) == "fresh":
+            log("finetune: up to date, skipped")
+            return False
+        if ws.manifest("mask_data") is None:
+            raise InputError("the mask-data stage has not run: run `wgs mask-data` first", ws.stage_dir("mask_data"))
+        gen = torch.Generator().manual_seed(seed)
+        torch.manual_seed(seed)
+        clean, bad, pairs = load_pairs(ws, cfg.domain)
+        train_ids, held = split_holdout(clean.shape[0], cfg.holdout, gen)
+        with ws.stage_run("finetune", config, fp) as run:
+            record = train_and_save(run, ws, cfg, clean, bad, train_ids, held, device, gen)
+            run.record.update(record)
+    log(f"finetune: D {record['d_seconds']:.0f} s; held-out L1 {record['heldout']['l1_before']:.4f} -> "
+        f"{record['heldout']['l1_after']:.4f}" + (f"; U {record['u_seconds']:.0f} s, stopped at "
+                                                  f"{record['u_stopped_at']}" if 'u_seconds' in record else ""))
+    return True
+
+
+def train_and_save(run: StageRun, ws: Workspace, cfg: FinetuneConfig, clean, bad, train_ids, held,
+                   device: torch.device, gen: torch.Generator) -> dict[str, Any]:
+    t0 = time.perf_counter()
+    d_model, d_curve = train_denoiser(cfg, clean[train_ids], bad[train_ids], device, gen)
+    d_seconds = time.perf_counter() - t0
+    save_model(run.dir / "D", d_model, {"domain": cfg.domain, "train_timesteps": cfg.train_timesteps,
+                                        })
+    ids = held if len(held) else train_ids
+    record: dict[str, Any] = {"domain": cfg.domain, "d_seconds": round(d_seconds, 2),
+                              "d_final_loss": d_curve["loss"][-1], "num_pairs": int(clean.shape[0]),
+                              "heldout": heldout_check(cfg, d_model, clean[ids], bad[ids], device)}
+    curves: dict[str, Any] = {"D": d_curve}
+    if cfg.domain == "wavelet" and cfg.use_u:
+        t1 = time.perf_counter()
+        renders, refs, _ = load_hf_data(ws)
+        u_model, u_curve = train_hf_unet(cfg, renders, refs, device, gen)
+        record.update({"u_seconds": round(time.perf_counter() - t1, 2), "u_best_val": u_curve["best_val"],
+                       "u_identity_val": u_curve["identity_val"], "u_stopped_at": u_curve["stopped_at"]})
+        save_model(run.dir / "U", u_model)
+        curves["U"] = u_curve
+    atomic_write_json(run.path("curves.json"), curves)
+    plot_curves(run.path("curves.png"), curves)
+    return record
