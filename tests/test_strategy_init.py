@@ -10,7 +10,7 @@ from wgs.gaussians.splats import create_splats
 from wgs.gaussians.strategy import DensifyStrategy, remove, reset_opacity, split
 from wgs.gaussians.trainer import make_optimizers
 from wgs.scene.dataset import Frame
-from wgs.stages.render_views import look_at
+from wgs.scene.orbit import look_at
 
 
 def params_and_opts(n=20):

@@ -106,8 +106,39 @@ class FinetuneConfig:
     eval_steps: int = 10
 
 
+@dataclass
+class RepairConfig:
+    views_per_train: int = 2  # novel viewpoints per training view (spread over neighbour pairs)
+    arc_min: float = 0.3  # fraction of the arc between neighbouring training cameras
+    arc_max: float = 0.7
+    strength: float = 0.5  # SDEdit: noise level the corrupted image is taken to before denoising
+    steps: int = 10  # DDIM steps
+
+
+@dataclass
+class FineConfig(TrainConfig):
+    """Refinement of G_c on the real and the pseudo references."""
+
+    iterations: int = 1500
+    refine_start: int = 100
+    refine_stop: int = 1000
+    pseudo_weight_start: float = 1.0
+    pseudo_weight_end: float = 0.5  # reached at pseudo_until of the iterations; 0 after (real views only)
+    pseudo_until: float = 0.7
+    pseudo_every: int = 2  # one pseudo-view step every k iterations
+    lpips_weight: float = 0.0  # LPIPS on the pseudo views (needs its weights on this machine)
+
+
+@dataclass
+class EvalConfig:
+    lpips_net: str = "alex"  # alex | vgg
+    lpips_weights: str | None = None  # folder; also $WGS_LPIPS_WEIGHTS, $TORCH_HOME/hub/checkpoints
+    max_views: int | None = None  # evaluate on the first k test views only
+
+
 STAGES: dict[str, type] = {"prepare": PrepareConfig, "coarse": CoarseConfig, "mask_data": MaskDataConfig,
-                           "finetune": FinetuneConfig}
+                           "finetune": FinetuneConfig, "repair": RepairConfig, "fine": FineConfig,
+                           "eval": EvalConfig}
 
 # Small budgets for the bundled example (`make demo`), shared by every 3DGS training stage.
 _FAST_TRAIN = {"refine_start": 100, "refine_every": 50, "sh_degree": 1, "sh_increase_every": 200,
@@ -119,6 +150,8 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
         "mask_data": {**_FAST_TRAIN, "iterations": 300, "refine_stop": 250, "warmup": 100, "pair_every": 40,
                       "drift_period": 100.0},
         "finetune": {"d_steps": 300, "u_max_steps": 300, "d_channels": 16, "u_eval_every": 25},
+        "repair": {"steps": 5},
+        "fine": {**_FAST_TRAIN, "iterations": 300, "refine_start": 50, "refine_stop": 200},
     },
     "default": {},
     "paper": {
@@ -206,7 +239,8 @@ def as_dict(cfg: Any) -> dict[str, Any]:
     return dataclasses.asdict(cfg)
 
 
-CHOICES: dict[str, tuple[str, ...]] = {"strategy": ("orm", "offline-rm", "loo"), "domain": ("wavelet", "rgb")}
+CHOICES: dict[str, tuple[str, ...]] = {"strategy": ("orm", "offline-rm", "loo"), "domain": ("wavelet", "rgb"),
+                                       "lpips_net": ("alex", "vgg")}
 
 
 def check_choices(cfg: Any) -> None:

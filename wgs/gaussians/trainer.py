@@ -29,6 +29,20 @@ PixelWeights = Callable[[int, int], torch.Tensor | None]
 
 
 @dataclass
+class PseudoViews:
+    """Pseudo references for the fine stage: frames (with images), per-view weights (GaussianObject's
+    distance weight), a schedule weight(it), and the background they were rendered on."""
+
+    frames: list[Frame]
+    weights: list[float]
+    schedule: Callable[[int], float]
+    background: torch.Tensor
+    every: int = 2
+    lpips: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None
+    lpips_weight: float = 0.0
+
+
+@dataclass
 class TrainResult:
     splats: Splats
     iterations: int
@@ -62,11 +76,13 @@ def photometric_loss(render: torch.Tensor, target: torch.Tensor, ssim_weight: fl
 
 def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, device: torch.device, *, extent: float,
                     desc: str = "train", seed: int = 0, pixel_weights: PixelWeights | None = None,
-                    has_masks: bool = True, on_step: Callable[[int, Splats], None] | None = None) -> TrainResult:
+                    has_masks: bool = True, on_step: Callable[[int, Splats], None] | None = None,
+                    pseudo: PseudoViews | None = None) -> TrainResult:
     """Optimise `splats` (raw, normalised world) on `frames` (with images). Returns the new splats.
 
     pixel_weights(i, it) -> [H, W] supervision weights for frame i (None: all pixels count);
     on_step(it, params) is called after every iteration with the current (detached) parameters.
+    pseudo: extra views trained with L1 + L2 (+ LPIPS) every `pseudo.every` iterations.
     """
     params = {k: v.detach().to(device).clone().requires_grad_(True) for k, v in splats.items()}
     optimizers = make_optimizers(params, cfg, extent)
@@ -102,6 +118,8 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
                 a_err = (alpha[..., 0] - masks[i]).abs()
                 loss = loss + cfg.mask_weight * (a_err.mean() if weight is None else
                                                  (a_err * weight).sum() / weight.sum().clamp_min(1.0))
+            if pseudo is not None and it % pseudo.every == 0 and pseudo.schedule(it) > 0:
+                loss = loss + pseudo_loss(params, pseudo, it, deg, device)
             loss.backward()
             if not torch.isfinite(loss):
                 raise WgsError(f"{desc}: loss became non-finite at iteration {it}; nothing was saved")
@@ -134,6 +152,20 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
                 break
     out = {k: v.detach() for k, v in params.items()}
     return TrainResult(out, it, time.perf_counter() - t0, losses)
+
+
+def pseudo_loss(params: Splats, pseudo: PseudoViews, it: int, deg: int, device: torch.device) -> torch.Tensor:
+    j = (it // pseudo.every) % len(pseudo.frames)
+    f = pseudo.frames[j]
+    means, quats, scales, opac, sh = activate(params)
+    rgb, _, _ = rasterize(means, quats, scales, opac, sh[:, : (deg + 1) ** 2], f.viewmat.to(device), f.K.to(device),
+                          f.width, f.height, pseudo.background.to(device))
+    target = f.image.to(device)
+    diff = rgb - target
+    loss = diff.abs().mean() + diff.pow(2).mean()
+    if pseudo.lpips is not None and pseudo.lpips_weight > 0:
+        loss = loss + pseudo.lpips_weight * pseudo.lpips(rgb.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None]).mean()
+    return pseudo.schedule(it) * pseudo.weights[j] * loss
 
 
 @torch.no_grad()

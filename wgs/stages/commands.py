@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import click
+
+from ..progress import log
 
 
 def register(cli, stage_common, workspace_option) -> None:
@@ -56,7 +60,69 @@ def register(cli, stage_common, workspace_option) -> None:
         run_finetune(obj.ws(), cfg, obj.torch_device(), obj.seed, force=force)
 
     @cli.command()
-    @click.option("--stage", "stage", type=click.Choice(["coarse"]), default="coarse", help="Which model.")
+    @click.option("--strength", type=float, default=None, help="SDEdit strength (noise level) of D's repair.")
+    @click.option("--steps", type=int, default=None, help="DDIM steps of D's repair.")
+    @click.option("--views-per-train", type=int, default=None, help="Novel viewpoints per training view.")
+    @stage_common
+    @click.pass_obj
+    def repair(obj, strength, steps, views_per_train, force, preset):
+        """Render G_c at novel views and repair them with D and U -> pseudo references."""
+        from .s4_repair import run_repair
+
+        cfg = obj.config("repair", preset, strength=strength, steps=steps, views_per_train=views_per_train)
+        run_repair(obj.ws(), cfg, obj.torch_device(), obj.seed, force=force)
+
+    @cli.command()
+    @click.option("--iterations", type=int, default=None, help="Training iterations.")
+    @stage_common
+    @click.pass_obj
+    def fine(obj, iterations, force, preset):
+        """Refine G_c into G_f on the real and the pseudo references."""
+        from .s5_fine import run_fine
+
+        run_fine(obj.ws(), obj.config("fine", preset, iterations=iterations), obj.torch_device(), obj.seed,
+                 force=force)
+
+    @cli.command("eval")
+    @click.option("--lpips-net", type=click.Choice(["alex", "vgg"]), default=None, help="LPIPS backbone.")
+    @click.option("--lpips-weights", type=click.Path(path_type=str), default=None,
+                  help="Folder with the LPIPS weights (else $WGS_LPIPS_WEIGHTS, $TORCH_HOME/hub/checkpoints).")
+    @click.option("--max-views", type=int, default=None, help="Evaluate on the first N test views only.")
+    @stage_common
+    @click.pass_obj
+    def eval_(obj, lpips_net, lpips_weights, max_views, force, preset):
+        """PSNR, SSIM, LPIPS of G_f and G_c on the test views, and the error-against-time report."""
+        from .s6_eval import run_eval
+
+        final = "fine" if obj.ws().manifest("fine") is not None else "coarse"
+        cfg = obj.config("eval", preset, lpips_net=lpips_net, lpips_weights=lpips_weights, max_views=max_views)
+        run_eval(obj.ws(), cfg, obj.torch_device(), force=force, final=final)
+
+    @cli.command("all")
+    @click.argument("scene", type=click.Path(path_type=Path))
+    @click.option("--views", type=int, default=None, help="Number of training views.")
+    @click.option("--downscale", type=int, default=None, help="Integer image downscale factor.")
+    @click.option("--strategy", type=click.Choice(["orm", "offline-rm", "loo"]), default=None,
+                  help="Pair generation of mask-data.")
+    @click.option("--domain", type=click.Choice(["wavelet", "rgb"]), default=None, help="Domain of D.")
+    @click.option("--no-u", "no_u", is_flag=True, default=None, help="Do not train or use the HF U-Net.")
+    @click.option("--force-repair", is_flag=True, help="Run the repair stages even with many training views.")
+    @stage_common
+    @click.pass_obj
+    def all_(obj, scene, views, downscale, strategy, domain, no_u, force_repair, force, preset):
+        """Run every stage on SCENE (each skipped when up to date) and print the summary."""
+        from ..pipeline import print_summary, run_all
+
+        if obj.workspace is None:
+            obj.workspace = Path(scene).with_name(Path(scene).name + "_wgs")
+            log(f"workspace: {obj.workspace}")
+        overrides = {"prepare": {"views": views, "downscale": downscale}, "mask_data": {"strategy": strategy},
+                     "finetune": {"domain": domain, "use_u": False if no_u else None}}
+        outcomes = run_all(obj, scene, preset, force, force_repair, overrides)
+        print_summary(obj.ws(), outcomes)
+
+    @cli.command()
+    @click.option("--stage", "stage", type=click.Choice(["coarse", "fine"]), default="coarse", help="Which model.")
     @click.option("--views", type=click.Choice(["test", "train", "path"]), default="test", help="Cameras to render.")
     @click.option("--frames", type=int, default=60, help="Number of frames for --views path.")
     @workspace_option

@@ -1,0 +1,118 @@
+"""Stage 4: pseudo references. Render G_c at novel viewpoints (from the training cameras only),
+Haar-DWT, D repairs the LL subband (SDEdit), U repairs the HF subbands, inverse DWT. With an
+RGB-domain D (`wgs finetune --domain rgb`) D repairs the RGB render and U is not used."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..config import RepairConfig, as_dict
+from ..errors import InputError
+from ..gaussians.splats import load_checkpoint
+from ..gaussians.trainer import render_frame
+from ..models.data import from_model, to_model
+from ..models.sampling import sdedit_repair
+from ..models.scheduler import DDIMScheduler
+from ..models.storage import load_model
+from ..progress import log
+from ..scene.dataset import load_prepared
+from ..scene.images import write_png
+from ..scene.orbit import novel_views
+from ..wavelet.exr import write_subbands
+from ..wavelet.haar import dwt2, idwt2, split_highs, stack_highs
+from ..workspace import StageRun, Workspace, atomic_write_json
+from .s1_coarse import CKPT, background_for
+
+VIEWS = "views.json"
+
+
+def chw_to_hwc(x: torch.Tensor) -> np.ndarray:
+    return x[0].permute(1, 2, 0).float().numpy()
+
+
+@torch.no_grad()
+def repair_image(render: torch.Tensor, D: torch.nn.Module, U: torch.nn.Module | None, domain: str,
+                 cfg: RepairConfig, train_timesteps: int, gen: torch.Generator, device: torch.device
+                 ) -> tuple[torch.Tensor, dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """render [H, W, 3] -> pseudo reference [H, W, 3] and the corrupted / repaired subbands."""
+    sched = DDIMScheduler(train_timesteps)
+    x = render.permute(2, 0, 1)[None].double()
+    h, w = x.shape[-2:]
+    if domain == "rgb":
+        fixed = sdedit_repair(D, sched, to_model(x.float(), "rgb").to(device), cfg.strength, cfg.steps, gen)
+        out = from_model(fixed.cpu(), "rgb").double()
+        bands_in = {"RGB": chw_to_hwc(x)}
+        bands_out = {"RGB": chw_to_hwc(out)}
+    else:
+        ll, [hf] = dwt2(x, 1)
+        ll_fixed = from_model(sdedit_repair(D, sched, to_model(ll.float(), "wavelet").to(device), cfg.strength,
+                                            cfg.steps, gen).cpu(), "wavelet").double()
+        hf_fixed = hf
+        if U is not None:
+            hf_fixed = split_highs(U(stack_highs(hf).float().to(device), ll.float().to(device)).cpu().double())
+        out = idwt2(ll_fixed, [hf_fixed], size=(h, w))
+        names = ("LL", "LH", "HL", "HH")
+        bands_in = dict(zip(names, map(chw_to_hwc, (ll, *hf)), strict=True))
+        bands_out = dict(zip(names, map(chw_to_hwc, (ll_fixed, *hf_fixed)), strict=True))
+    return out[0].permute(1, 2, 0).clamp(0, 1).float(), bands_in, bands_out
+
+
+def contact_sheet(rows: list[tuple[torch.Tensor, torch.Tensor]]) -> np.ndarray:
+    """One row per view: render | repaired."""
+    return np.concatenate([np.concatenate([a.numpy(), b.numpy()], axis=1) for a, b in rows], axis=0)
+
+
+def run_repair(ws: Workspace, cfg: RepairConfig, device: torch.device, seed: int, force: bool = False) -> bool:
+    config = as_dict(cfg)
+    with ws.lock():
+        fp = ws.stage_fingerprint("repair", config, {"seed": seed})
+        if not force and ws.status("repair", fp) == "fresh":
+            log("repair: up to date, skipped")
+            return False
+        if ws.manifest("finetune") is None:
+            raise InputError("the finetune stage has not run: run `wgs finetune` first", ws.stage_dir("finetune"))
+        scene = load_prepared(ws)
+        with ws.stage_run("repair", config, fp) as run:
+            record = repair_views(run, ws, scene, cfg, device, seed)
+            run.record.update(record)
+    log(f"repair: {record['num_views']} pseudo references in {record['seconds']:.1f} s")
+    return True
+
+
+def repair_views(run: StageRun, ws: Workspace, scene, cfg: RepairConfig, device: torch.device, seed: int
+                 ) -> dict[str, Any]:
+    import time
+
+    t0 = time.perf_counter()
+    splats, _ = load_checkpoint(ws.stage_dir("coarse") / CKPT, scene.norm, device)
+    D, d_cfg = load_model(ws.stage_dir("finetune") / "D", device)
+    domain = d_cfg.get("domain", "wavelet")
+    u_dir = ws.stage_dir("finetune") / "U"
+    U = load_model(u_dir, device)[0] if (domain == "wavelet" and u_dir.is_dir()) else None
+    n_pairs = max(1, len(scene.train))
+    per_pair = max(1, round(cfg.views_per_train * len(scene.train) / n_pairs))
+    views = novel_views(scene.train, per_pair, cfg.arc_min, cfg.arc_max, seed)
+    gen = torch.Generator().manual_seed(seed)
+    bg = background_for(scene)
+    listing, rows = [], []
+    d_max = max(d for _, d in views)
+    for frame, dist in views:
+        render, _ = render_frame(splats, frame, device, bg)
+        fixed, bands_in, bands_out = repair_image(render, D, U, domain, cfg, d_cfg.get("train_timesteps", 1000),
+                                                  gen, device)
+        stem = frame.name.rsplit(".", 1)[0]
+        write_subbands(run.path("corrupted", f"{stem}.exr"), bands_in)
+        write_subbands(run.path("repaired", f"{stem}.exr"), bands_out)
+        write_subbands(run.path("pseudo", f"{stem}.exr"), {"RGB": fixed.numpy()}, half=False)
+        write_png(run.path("pseudo", frame.name), fixed.numpy())
+        rows.append((render, fixed))
+        listing.append({"name": frame.name, "K": frame.K.tolist(), "viewmat": frame.viewmat.tolist(),
+                        "width": frame.width, "height": frame.height, "distance": dist,
+                        "weight": min(1.0, 2.0 * dist / d_max) if d_max > 0 else 1.0})
+    write_png(run.path("contact_sheet.png"), contact_sheet(rows))
+    atomic_write_json(run.path(VIEWS), {"domain": domain, "used_u": U is not None, "views": listing})
+    return {"num_views": len(listing), "domain": domain, "used_u": U is not None,
+            "seconds": round(time.perf_counter() - t0, 2)}

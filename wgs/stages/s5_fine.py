@@ -1,0 +1,78 @@
+"""Stage 5: refine G_c into G_f on the real references plus the pseudo references."""
+
+from __future__ import annotations
+
+import torch
+
+from ..config import FineConfig, as_dict
+from ..errors import InputError
+from ..gaussians.splats import export_ply, load_checkpoint, save_checkpoint, to_world
+from ..gaussians.trainer import PseudoViews, train_gaussians
+from ..progress import log
+from ..scene.dataset import Frame, load_prepared
+from ..wavelet.exr import read_subbands
+from ..workspace import Workspace, read_json
+from .s1_coarse import CKPT, PLY, background_for
+from .s4_repair import VIEWS
+
+
+def pseudo_schedule(cfg: FineConfig):
+    """GaussianObject's: weight start -> end linearly over `pseudo_until` of the steps, then 0."""
+    stop = cfg.pseudo_until * cfg.iterations
+
+    def weight(it: int) -> float:
+        if it > stop:
+            return 0.0
+        return cfg.pseudo_weight_start + (cfg.pseudo_weight_end - cfg.pseudo_weight_start) * it / max(stop, 1)
+
+    return weight
+
+
+def load_pseudo_views(ws: Workspace) -> tuple[list[Frame], list[float]]:
+    d = ws.stage_dir("repair")
+    listing = read_json(d / VIEWS)
+    frames, weights = [], []
+    for v in listing["views"]:
+        img = read_subbands(d / "pseudo" / f"{v['name'].rsplit('.', 1)[0]}.exr")["RGB"]
+        frames.append(Frame(v["name"], torch.tensor(v["K"]), torch.tensor(v["viewmat"]), v["width"], v["height"],
+                            torch.from_numpy(img)))
+        weights.append(float(v["weight"]))
+    return frames, weights
+
+
+def lpips_for_training(cfg: FineConfig, device: torch.device):
+    if cfg.lpips_weight <= 0:
+        return None
+    from ..lpips import LPIPS, LpipsUnavailable
+
+    try:
+        return LPIPS("vgg").to(device)
+    except LpipsUnavailable as exc:
+        log(f"fine: no LPIPS term ({exc})")
+        return None
+
+
+def run_fine(ws: Workspace, cfg: FineConfig, device: torch.device, seed: int, force: bool = False) -> bool:
+    config = as_dict(cfg)
+    with ws.lock():
+        fp = ws.stage_fingerprint("fine", config, {"seed": seed})
+        if not force and ws.status("fine", fp) == "fresh":
+            log("fine: up to date, skipped")
+            return False
+        if ws.manifest("repair") is None:
+            raise InputError("the repair stage has not run: run `wgs repair` first", ws.stage_dir("repair"))
+        scene = load_prepared(ws)
+        splats, _ = load_checkpoint(ws.stage_dir("coarse") / CKPT, scene.norm)
+        frames, weights = load_pseudo_views(ws)
+        pseudo = PseudoViews(frames, weights, pseudo_schedule(cfg), background_for(scene), cfg.pseudo_every,
+                             lpips_for_training(cfg, device), cfg.lpips_weight)
+        torch.manual_seed(seed)
+        with ws.stage_run("fine", config, fp) as run:
+            res = train_gaussians(splats, scene.train, cfg, device, extent=1.0, desc="fine", seed=seed,
+                                  has_masks=scene.has_masks, pseudo=pseudo)
+            save_checkpoint(run.path(CKPT), res.splats, scene.norm, res.iterations)
+            n = export_ply(run.path(PLY), to_world(res.splats, scene.norm))
+            run.record.update({"num_gaussians": n, "iterations": res.iterations, "num_pseudo": len(frames),
+                               "train_seconds": round(res.seconds, 2), "final_loss": res.losses[-1], "seed": seed})
+    log(f"fine: {n} Gaussians, {len(frames)} pseudo views, {res.seconds:.1f} s")
+    return True

@@ -1,0 +1,165 @@
+"""Stage 6: PSNR / SSIM / LPIPS of G_f (and G_c, to show the repair's gain) on the test views,
+and the error-against-run-time report."""
+
+from __future__ import annotations
+
+import statistics
+import time
+from typing import Any
+
+import torch
+
+from ..config import EvalConfig, as_dict
+from ..errors import InputError
+from ..gaussians.splats import load_checkpoint
+from ..gaussians.trainer import render_frame
+from ..lpips import LPIPS, LpipsUnavailable
+from ..metrics import psnr, ssim
+from ..progress import log, progress_bar
+from ..scene.dataset import composite, load_prepared
+from ..scene.images import write_png
+from ..workspace import STAGE_DIRS, StageRun, Workspace, atomic_write_bytes, atomic_write_json
+from .s1_coarse import CKPT, background_for
+
+METRICS_DOC = {
+    "psnr": "mean over views of per-view PSNR (dB), images in [0, 1] on the dataset background",
+    "ssim": "11x11 Gaussian window, sigma 1.5, zero padding, mean of the map (3DGS / GaussianObject code)",
+    "lpips": "LPIPS v0.1 in plain torch from local torchvision-format weights",
+}
+PIPELINE = ("scene", "coarse", "mask_data", "finetune", "repair", "fine")
+
+
+def evaluate_model(splats, frames, device, bg, lpips_fn, out_dir=None, desc="eval") -> dict[str, dict[str, float]]:
+    per: dict[str, dict[str, float]] = {"psnr": {}, "ssim": {}, "lpips": {}}
+    with progress_bar(desc, len(frames)) as prog:
+        for i, f in enumerate(frames):
+            rgb, _ = render_frame(splats, f, device, bg)
+            ref = composite(f.image, f.mask, bg)
+            per["psnr"][f.name] = psnr(rgb, ref)
+            per["ssim"][f.name] = ssim(rgb, ref)
+            if lpips_fn is not None:
+                with torch.no_grad():
+                    per["lpips"][f.name] = float(lpips_fn(rgb.permute(2, 0, 1)[None].to(device),
+                                                          ref.permute(2, 0, 1)[None].to(device)))
+            if out_dir is not None:
+                write_png(out_dir / f.name, rgb.numpy())
+            prog.update(0, completed=i + 1)
+    if lpips_fn is None:
+        del per["lpips"]
+    return per
+
+
+def summarise(per: dict[str, dict[str, float]]) -> dict[str, float | None]:
+    out: dict[str, float | None] = {}
+    for m in ("psnr", "ssim", "lpips"):
+        vals = list(per.get(m, {}).values())
+        out[m] = statistics.fmean(vals) if vals else None
+        out[f"{m}_std"] = statistics.pstdev(vals) if vals else None
+    return out
+
+
+def stage_times(ws: Workspace) -> list[dict[str, Any]]:
+    rows, cum = [], 0.0
+    for st in PIPELINE:
+        m = ws.manifest(st)
+        if m is None:
+            continue
+        cum += m.get("wall_time_s", 0.0)
+        rows.append({"stage": st, "wall_time_s": m.get("wall_time_s", 0.0), "cumulative_s": round(cum, 2),
+                     "peak_memory_mb": m.get("peak_memory_mb")})
+    return rows
+
+
+def fmt(v: float | None, nd: int = 3) -> str:
+    return "n/a" if v is None else f"{v:.{nd}f}"
+
+
+def write_report(run: StageRun, times: list[dict[str, Any]], coarse: dict, fine: dict, eval_s: float,
+                 lpips_note: str | None) -> None:
+    total = (times[-1]["cumulative_s"] if times else 0.0) + eval_s
+    lines = ["# wgs report: error against run time", "",
+             "| stage | wall time (s) | cumulative (s) | peak memory (MiB) | PSNR | SSIM | LPIPS |",
+             "| --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    for r in times:
+        q = coarse if r["stage"] == "coarse" else fine if r["stage"] == "fine" else None
+        qs = [fmt(q["psnr"], 2), fmt(q["ssim"]), fmt(q["lpips"])] if q else ["", "", ""]
+        lines.append(f"| {r['stage']} | {r['wall_time_s']:.1f} | {r['cumulative_s']:.1f} | "
+                     f"{fmt(r['peak_memory_mb'], 0)} | " + " | ".join(qs) + " |")
+    lines.append(f"| eval | {eval_s:.1f} | {total:.1f} | | | | |")
+    lines += ["", f"Quality is measured on {fine.get('num_views')} test views (mean over views; "
+                  "coarse = G_c, fine = G_f).", ""]
+    if lpips_note:
+        lines += [f"LPIPS not computed: {lpips_note}", ""]
+    atomic_write_bytes(run.path("report.md"), "\n".join(lines).encode())
+    plot_error_vs_time(run.path("error_vs_time.png"), times, coarse, fine)
+
+
+def plot_error_vs_time(path, times, coarse, fine) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cum = {r["stage"]: r["cumulative_s"] for r in times}
+    pts = [(cum[s], q["psnr"], s) for s, q in (("coarse", coarse), ("fine", fine)) if s in cum and q["psnr"]]
+    fig, ax = plt.subplots(figsize=(5, 3.2))
+    if pts:
+        ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-")
+        for x, y, s in pts:
+            ax.annotate(s, (x, y), textcoords="offset points", xytext=(4, 4))
+    ax.set(xlabel="cumulative wall time (s)", ylabel="test PSNR (dB)", title="error against run time")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def run_eval(ws: Workspace, cfg: EvalConfig, device: torch.device, force: bool = False, final: str = "fine") -> bool:
+    """Evaluate `final` (fine, or coarse when the repair stages were left out) and G_c."""
+    config = as_dict(cfg)
+    with ws.lock():
+        fp = ws.stage_fingerprint("eval", config, {"final": final})
+        if not force and ws.status("eval", fp) == "fresh":
+            log("eval: up to date, skipped")
+            return False
+        for st in ("coarse", final):
+            if ws.manifest(st) is None:
+                raise InputError(f"the {st} stage has not run", ws.stage_dir(st))
+        scene = load_prepared(ws, load_test_images=True)
+        if not scene.test:
+            raise InputError("the scene has no test views: nothing to evaluate", ws.stage_dir("scene"))
+        frames = scene.test[: cfg.max_views] if cfg.max_views else scene.test
+        try:
+            lpips_fn, lpips_note = LPIPS(cfg.lpips_net, cfg.lpips_weights).to(device), None
+        except LpipsUnavailable as exc:
+            lpips_fn, lpips_note = None, str(exc)
+            log(f"eval: {exc}")
+        bg = background_for(scene)
+        with ws.stage_run("eval", config, fp) as run:
+            t0 = time.perf_counter()
+            results = {}
+            for key, st in (("fine", final), ("coarse", "coarse")):
+                if key == "coarse" and final == "coarse":
+                    results["coarse"] = results["fine"]
+                    continue
+                splats, _ = load_checkpoint(ws.stage_dir(st) / CKPT, scene.norm, device)
+                out = run.path("renders", "x").parent if key == "fine" else None
+                per = evaluate_model(splats, frames, device, bg, lpips_fn, out, desc=f"eval {st}")
+                atomic_write_json(run.path("per_view.json" if key == "fine" else "per_view_coarse.json"), per)
+                results[key] = {**summarise(per), "num_gaussians": int(splats["means"].shape[0]),
+                                "num_views": len(frames)}
+            res = {**results["fine"], "final_model": final, "coarse": results["coarse"], "lpips_net": cfg.lpips_net if lpips_fn else None,
+                   "lpips_unavailable": lpips_note, "metrics": METRICS_DOC,
+                   "lpips_weights": lpips_fn.sources if lpips_fn else None,
+                   "stage_times_s": {r["stage"]: r["wall_time_s"] for r in stage_times(ws)}}
+            atomic_write_json(run.path("results.json"), res)
+            write_report(run, stage_times(ws), results["coarse"], results["fine"], time.perf_counter() - t0,
+                         lpips_note)
+            run.record.update({"psnr": res["psnr"], "ssim": res["ssim"], "lpips": res["lpips"],
+                               "coarse_psnr": results["coarse"]["psnr"]})
+    c, f = results["coarse"], results["fine"]
+    log(f"eval: PSNR {fmt(c['psnr'], 2)} -> {fmt(f['psnr'], 2)} dB, SSIM {fmt(c['ssim'])} -> {fmt(f['ssim'])}, "
+        f"LPIPS {fmt(c['lpips'])} -> {fmt(f['lpips'])} (coarse -> fine, {len(frames)} test views)")
+    return True
+
+
+__all__ = ["run_eval", "STAGE_DIRS"]
