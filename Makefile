@@ -33,6 +33,7 @@ test: $(VENV)/.installed
 
 bench: $(VENV)/.installed
 	$(BIN)/python -m wgs.bench rasterizer --json
+	$(BIN)/python -m wgs.bench pipeline --root bench_out
 
 lint: $(VENV)/.installed
 	$(BIN)/ruff check wgs tests examples

@@ -10,9 +10,12 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+import shutil
 import statistics
+import subprocess
 import sys
 import time
+from pathlib import Path
 
 import torch
 
@@ -72,13 +75,80 @@ def bench_rasterizer(repeats: int, ref_repeats: int) -> dict:
             "peak_memory_mb": peak_memory_mb()}
 
 
+def wgs_cli(*args: str) -> float:
+    """Run `wgs ARGS` in a subprocess; returns its wall time."""
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "wgs", "-q", *args], check=True)
+    return time.perf_counter() - t0
+
+
+def bench_pipeline(scene: str, root: str, preset: str, views: int, downscale: int) -> dict:
+    """`wgs all` on a scene, then plain 3DGS (the coarse trainer, no repair) on the same views for the
+    same total wall time, both evaluated on all test views; plus mask-data ORM vs LOO, one after the other."""
+    base = Path(root)
+    if base.exists():
+        shutil.rmtree(base)
+    ws, ws_3dgs, ws_loo = base / "wgs", base / "3dgs", base / "loo"
+    pre = ["--preset", preset]
+    t_all = wgs_cli("-w", str(ws), "all", scene, "--views", str(views), "--downscale", str(downscale), *pre)
+    res = json.loads((ws / "6_eval" / "results.json").read_text())
+    # plain 3DGS for the same time: same scene folder, coarse trainer with a time budget
+    ws_3dgs.mkdir(parents=True)
+    shutil.copytree(ws / "scene", ws_3dgs / "scene")
+    coarse = json.loads((ws / "1_coarse" / "manifest.json").read_text())
+    scale = t_all / coarse["train_seconds"]  # as many iterations as fit in the time of `wgs all`
+    its = int(coarse["iterations"] * scale)
+    refine_stop = int(coarse["config"]["refine_stop"] * scale)
+    cfg = base / "3dgs.toml"
+    cfg.write_text(f"[coarse]\niterations = {its}\nmax_seconds = {t_all:.1f}\nrefine_stop = {refine_stop}\n")
+    t_3dgs = wgs_cli("--config", str(cfg), "-w", str(ws_3dgs), "coarse", *pre)
+    wgs_cli("-w", str(ws_3dgs), "eval", *pre)
+    res_3dgs = json.loads((ws_3dgs / "6_eval" / "results.json").read_text())
+    # leave-one-out pairs on the same coarse model, timed right after ORM's (recorded by `wgs all`)
+    ws_loo.mkdir(parents=True)
+    for d in ("scene", "1_coarse"):
+        shutil.copytree(ws / d, ws_loo / d)
+    wgs_cli("-w", str(ws_loo), "mask-data", "--strategy", "loo", *pre)
+    orm = json.loads((ws / "2_mask_data" / "manifest.json").read_text())
+    loo = json.loads((ws_loo / "2_mask_data" / "manifest.json").read_text())
+    ft = json.loads((ws / "3_finetune" / "manifest.json").read_text())
+    pick = ("psnr", "psnr_std", "ssim", "ssim_std", "lpips", "lpips_std", "num_gaussians", "num_views")
+    return {
+        "benchmark": "pipeline", "scene": scene, "preset": preset, "views": views, "downscale": downscale,
+        "wgs_all_wall_s": t_all, "stage_times_s": res["stage_times_s"],
+        "coarse": {k: res["coarse"].get(k) for k in pick}, "fine": {k: res.get(k) for k in pick},
+        "plain_3dgs": {**{k: res_3dgs["coarse"].get(k) for k in pick}, "wall_s": t_3dgs},
+        "mask_data": {"orm_s": orm["strategy_seconds"], "loo_s": loo["strategy_seconds"],
+                      "ratio_orm_over_loo": orm["strategy_seconds"] / loo["strategy_seconds"],
+                      "orm_pairs": orm["num_pairs"], "loo_pairs": loo["num_pairs"]},
+        "finetune": {k: ft.get(k) for k in ("d_seconds", "d_final_loss", "u_seconds", "u_best_val",
+                                            "u_identity_val", "u_stopped_at", "heldout")},
+        "machine": {"platform": platform.platform(), "threads": torch.get_num_threads()},
+    }
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(prog="python -m wgs.bench")
-    ap.add_argument("which", choices=["rasterizer"])
+    ap.add_argument("which", choices=["rasterizer", "pipeline"])
     ap.add_argument("--json", action="store_true", help="print JSON instead of a table")
     ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--ref-repeats", type=int, default=3)
+    ap.add_argument("--scene", default=str(Path(__file__).resolve().parents[2] / "shared" / "data" / "lego"))
+    ap.add_argument("--root", default="bench_out")
+    ap.add_argument("--preset", default="default")
+    ap.add_argument("--views", type=int, default=4)
+    ap.add_argument("--downscale", type=int, default=2)
     a = ap.parse_args(argv)
+    if a.which == "pipeline":
+        if not Path(a.scene).is_dir():
+            print(f"scene {a.scene} not found: skipped")
+            return
+        res = bench_pipeline(a.scene, a.root, a.preset, a.views, a.downscale)
+        Path(a.root).mkdir(exist_ok=True)
+        (Path(a.root) / "pipeline.json").write_text(json.dumps(res, indent=2))
+        json.dump(res, sys.stdout, indent=2)
+        print()
+        return
     res = bench_rasterizer(a.repeats, a.ref_repeats)
     if a.json:
         json.dump(res, sys.stdout, indent=2)

@@ -164,7 +164,8 @@ def pseudo_loss(params: Splats, pseudo: PseudoViews, it: int, deg: int, device: 
     diff = rgb - target
     loss = diff.abs().mean() + diff.pow(2).mean()
     if pseudo.lpips is not None and pseudo.lpips_weight > 0:
-        loss = loss + pseudo.lpips_weight * pseudo.lpips(rgb.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None]).mean()
+        perceptual = pseudo.lpips(rgb.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None]).mean()
+        loss = loss + pseudo.lpips_weight * perceptual
     return pseudo.schedule(it) * pseudo.weights[j] * loss
 
 

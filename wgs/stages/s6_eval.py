@@ -113,7 +113,8 @@ def plot_error_vs_time(path, times, coarse, fine) -> None:
     plt.close(fig)
 
 
-def run_eval(ws: Workspace, cfg: EvalConfig, device: torch.device, force: bool = False, final: str = "fine") -> bool:
+def run_eval(ws: Workspace, cfg: EvalConfig, device: torch.device, force: bool = False,
+             final: str = "fine") -> bool:
     """Evaluate `final` (fine, or coarse when the repair stages were left out) and G_c."""
     config = as_dict(cfg)
     with ws.lock():
@@ -147,7 +148,8 @@ def run_eval(ws: Workspace, cfg: EvalConfig, device: torch.device, force: bool =
                 atomic_write_json(run.path("per_view.json" if key == "fine" else "per_view_coarse.json"), per)
                 results[key] = {**summarise(per), "num_gaussians": int(splats["means"].shape[0]),
                                 "num_views": len(frames)}
-            res = {**results["fine"], "final_model": final, "coarse": results["coarse"], "lpips_net": cfg.lpips_net if lpips_fn else None,
+            res = {**results["fine"], "final_model": final, "coarse": results["coarse"],
+                   "lpips_net": cfg.lpips_net if lpips_fn else None,
                    "lpips_unavailable": lpips_note, "metrics": METRICS_DOC,
                    "lpips_weights": lpips_fn.sources if lpips_fn else None,
                    "stage_times_s": {r["stage"]: r["wall_time_s"] for r in stage_times(ws)}}

@@ -1,0 +1,157 @@
+"""`wgs all` end to end on a tiny scene: the workspace contract, skip logic, leave-outs."""
+
+import json
+import math
+import shutil
+
+import pytest
+from click.testing import CliRunner
+
+from wgs.cli import cli
+from wgs.workspace import Workspace
+
+TINY = """
+[coarse]
+iterations = 30
+refine_start = 10
+refine_every = 10
+init_points = 800
+hull_resolution = 32
+[mask_data]
+iterations = 30
+refine_start = 10
+refine_every = 10
+init_points = 800
+hull_resolution = 32
+warmup = 10
+pair_every = 10
+[finetune]
+d_steps = 8
+d_channels = 8
+d_batch = 4
+u_max_steps = 8
+u_channels = 8
+u_eval_every = 4
+eval_steps = 2
+[repair]
+steps = 2
+[fine]
+iterations = 20
+refine_start = 5
+refine_every = 5
+"""
+
+CONTRACT = [
+    "scene/scene.json", "scene/sparse/cameras.txt", "scene/sparse/images.txt", "scene/split_train.txt",
+    "1_coarse/ckpt.pt", "1_coarse/point_cloud.ply", "1_coarse/train_psnr.json",
+    "2_mask_data/index.json", "3_finetune/D/model.safetensors", "3_finetune/D/config.json",
+    "3_finetune/U/model.safetensors", "3_finetune/curves.json", "3_finetune/curves.png",
+    "4_repair/views.json", "4_repair/contact_sheet.png", "5_fine/ckpt.pt", "5_fine/point_cloud.ply",
+    "6_eval/results.json", "6_eval/per_view.json", "6_eval/per_view_coarse.json", "6_eval/report.md",
+    "6_eval/error_vs_time.png",
+]
+STAGES = ["scene", "coarse", "mask_data", "finetune", "repair", "fine", "eval"]
+
+
+def run_all(cfg, ws, scene, *extra):
+    res = CliRunner().invoke(cli, ["-q", "--config", str(cfg), "-w", str(ws), "all", str(scene), *extra],
+                             catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    return res
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+    from make_scene import make_scene
+
+    base = tmp_path_factory.mktemp("e2e")
+    scene = make_scene(base / "scene", seed=2, size=64, n_train=4, n_test=5)
+    cfg = base / "wgs.toml"
+    cfg.write_text(TINY)
+    ws = base / "ws"
+    res = run_all(cfg, ws, scene)
+    return scene, cfg, Workspace(ws), res.output
+
+
+def finished(ws: Workspace) -> dict[str, str]:
+    return {s: (ws.manifest(s) or {}).get("finished", "") + str((ws.manifest(s) or {}).get("wall_time_s"))
+            for s in STAGES}
+
+
+def test_workspace_contract_and_results(tiny):
+    _, _, ws, output = tiny
+    for rel in CONTRACT:
+        assert (ws.root / rel).is_file(), rel
+    res = json.loads((ws.root / "6_eval/results.json").read_text())
+    for k in ("psnr", "psnr_std", "ssim", "ssim_std"):
+        assert math.isfinite(res[k]) and math.isfinite(res["coarse"][k])
+    assert res["num_views"] == 5 and res["num_gaussians"] > 0
+    assert res["lpips"] is None and "not found" in res["lpips_unavailable"]
+    per = json.loads((ws.root / "6_eval/per_view.json").read_text())
+    assert len(per["psnr"]) == 5
+    assert set(res["stage_times_s"]) == {"scene", "coarse", "mask_data", "finetune", "repair", "fine"}
+    assert "PSNR" in output and "report" in output
+    report = (ws.root / "6_eval/report.md").read_text()
+    assert "| coarse |" in report and "| fine |" in report
+    views = json.loads((ws.root / "4_repair/views.json").read_text())
+    assert len(views["views"]) == 8 and views["used_u"] is True
+    assert all(0 < v["weight"] <= 1 for v in views["views"])
+
+
+def test_second_run_recomputes_nothing_and_fine_option_reruns_fine_and_eval(tiny, tmp_path):
+    scene, cfg, ws0, _ = tiny
+    ws = Workspace(tmp_path / "ws")
+    shutil.copytree(ws0.root, ws.root)
+    before = finished(ws)
+    run_all(cfg, ws.root, scene)
+    assert finished(ws) == before
+    cfg2 = tmp_path / "wgs.toml"
+    cfg2.write_text(cfg.read_text().replace("[fine]\niterations = 20", "[fine]\niterations = 12"))
+    run_all(cfg2, ws.root, scene)
+    after = finished(ws)
+    changed = {s for s in STAGES if after[s] != before[s]}
+    assert changed == {"fine", "eval"}
+    assert ws.manifest("fine")["iterations"] == 12
+
+
+def test_left_out_without_masks_and_test_views(tiny, tmp_path):
+    from wgs.scene.images import read_image, write_png
+
+    scene, cfg, _, _ = tiny
+    d = tmp_path / "nomask"
+    shutil.copytree(scene, d)
+    for p in d.rglob("*.png"):
+        write_png(p, read_image(p)[..., :3])  # RGB only: no alpha, so no masks
+    (d / "transforms_test.json").unlink()
+    res = CliRunner().invoke(cli, ["--config", str(cfg), "-w", str(tmp_path / "ws"), "all", str(d), "--views", "4"],
+                             catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    ws = Workspace(tmp_path / "ws")
+    assert ws.manifest("fine") is not None
+    # no test split in the dataset -> every 8th remaining view; here none remain, so no eval
+    assert ws.manifest("eval") is None
+    out = " ".join(res.output.split())
+    assert "no masks" in out and "no test views" in out
+
+
+def test_many_views_leave_out_repair(tmp_path, tiny):
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+    from make_scene import make_scene
+
+    _, cfg, _, _ = tiny
+    scene = make_scene(tmp_path / "many", seed=3, size=32, n_train=12, n_test=2)
+    res = CliRunner().invoke(cli, ["--config", str(cfg), "-w", str(tmp_path / "ws"), "all", str(scene)],
+                             catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    ws = Workspace(tmp_path / "ws")
+    assert ws.manifest("mask_data") is None and ws.manifest("fine") is None
+    r = json.loads((ws.root / "6_eval/results.json").read_text())
+    assert r["final_model"] == "coarse"
+    assert "--force-repair" in " ".join(res.output.split())

@@ -1,0 +1,117 @@
+"""Metrics: 3DGS-style SSIM against a float64 reference, PSNR edge cases, LPIPS from local weights."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from wgs.lpips import LPIPS, LpipsUnavailable
+from wgs.metrics import psnr, ssim
+
+
+def ssim_reference(a: np.ndarray, b: np.ndarray) -> float:
+    """Direct float64 loop over pixels: zero-padded 11x11 Gaussian window, sigma 1.5."""
+    x = np.arange(11) - 5
+    g = np.exp(-(x**2) / (2 * 1.5**2))
+    w = np.outer(g, g) / np.outer(g, g).sum()
+    h, wd, c = a.shape
+    pa = np.pad(a, ((5, 5), (5, 5), (0, 0)))
+    pb = np.pad(b, ((5, 5), (5, 5), (0, 0)))
+    total = 0.0
+    for ch in range(c):
+        for i in range(h):
+            for j in range(wd):
+                wa, wb = pa[i:i + 11, j:j + 11, ch], pb[i:i + 11, j:j + 11, ch]
+                ma, mb = (w * wa).sum(), (w * wb).sum()
+                va, vb = (w * wa * wa).sum() - ma**2, (w * wb * wb).sum() - mb**2
+                cov = (w * wa * wb).sum() - ma * mb
+                total += ((2 * ma * mb + 1e-4) * (2 * cov + 9e-4)) / ((ma**2 + mb**2 + 1e-4) * (va + vb + 9e-4))
+    return total / (h * wd * c)
+
+
+def test_ssim_matches_float64_reference():
+    rng = np.random.default_rng(0)
+    a = rng.random((13, 17, 3))
+    b = np.clip(a + rng.normal(scale=0.1, size=a.shape), 0, 1)
+    assert abs(ssim(torch.from_numpy(a).float(), torch.from_numpy(b).float()) - ssim_reference(a, b)) < 1e-6
+
+
+def test_ssim_and_psnr_defined_values():
+    x = torch.rand(16, 16, 3)
+    assert ssim(x, x) == pytest.approx(1.0, abs=1e-12)
+    c = torch.full((16, 16, 3), 0.5)
+    assert ssim(c, c) == pytest.approx(1.0)
+    assert math.isfinite(ssim(c, torch.zeros_like(c)))
+    assert psnr(x, x) == math.inf
+    assert psnr(torch.zeros(4, 4), torch.ones(4, 4)) == pytest.approx(0.0)
+    with pytest.raises(ValueError):
+        ssim(torch.zeros(4, 4), torch.zeros(4, 4))
+
+
+def write_random_lpips(folder, net="alex", seed=0):
+    """torchvision-format backbone + LPIPS linear layers with random weights (positive lins)."""
+    from wgs.lpips import BACKBONE_FILES, CHANNELS, LIN_FILES, _features
+
+    g = torch.Generator().manual_seed(seed)
+    feats = _features(net)
+    state = {}
+    for k, v in feats.state_dict().items():
+        state[f"features.{k}"] = torch.randn(v.shape, generator=g) * (0.1 if k.endswith("weight") else 0.01)
+    state["classifier.1.weight"] = torch.zeros(4, 4)  # torchvision files hold more than the features
+    torch.save(state, folder / BACKBONE_FILES[net])
+    lins = {f"lin{i}.model.1.weight": torch.rand(1, ch, 1, 1, generator=g) for i, ch in enumerate(CHANNELS[net])}
+    torch.save(lins, folder / LIN_FILES[net])
+    return state, lins
+
+
+def lpips_by_hand(state, lins, a, b):
+    """AlexNet LPIPS written out layer by layer."""
+    shift = torch.tensor([-0.030, -0.088, -0.188])[None, :, None, None]
+    scale = torch.tensor([0.458, 0.448, 0.450])[None, :, None, None]
+
+    def feats(x):
+        x = (x * 2 - 1 - shift) / scale
+        out = []
+        x = F.relu(F.conv2d(x, state["features.0.weight"], state["features.0.bias"], stride=4, padding=2))
+        out.append(x)
+        x = F.max_pool2d(x, 3, 2)
+        x = F.relu(F.conv2d(x, state["features.3.weight"], state["features.3.bias"], padding=2))
+        out.append(x)
+        x = F.max_pool2d(x, 3, 2)
+        for i in (6, 8, 10):
+            x = F.relu(F.conv2d(x, state[f"features.{i}.weight"], state[f"features.{i}.bias"], padding=1))
+            out.append(x)
+        return out
+
+    total = 0.0
+    for i, (x, y) in enumerate(zip(feats(a), feats(b), strict=True)):
+        x = x / (x.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
+        y = y / (y.pow(2).sum(1, keepdim=True).sqrt() + 1e-10)
+        total = total + ((x - y) ** 2 * lins[f"lin{i}.model.1.weight"]).sum(1).mean()
+    return float(total)
+
+
+def test_lpips_against_hand_computed_values(tmp_path, monkeypatch):
+    hub = tmp_path / "torch" / "hub" / "checkpoints"
+    hub.mkdir(parents=True)
+    state, lins = write_random_lpips(hub)
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
+    monkeypatch.delenv("WGS_LPIPS_WEIGHTS", raising=False)
+    m = LPIPS("alex")
+    g = torch.Generator().manual_seed(1)
+    a, b = torch.rand(1, 3, 64, 64, generator=g), torch.rand(1, 3, 64, 64, generator=g)
+    assert float(m(a, b)) == pytest.approx(lpips_by_hand(state, lins, a, b), rel=1e-5)
+    assert float(m(a, a)) == 0.0
+
+
+def test_lpips_vgg_loads_and_missing_weights_are_explained(tmp_path, monkeypatch):
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "none"))
+    monkeypatch.delenv("WGS_LPIPS_WEIGHTS", raising=False)
+    with pytest.raises(LpipsUnavailable, match="alexnet-owt-7be5be79.pth"):
+        LPIPS("alex")
+    write_random_lpips(tmp_path, "vgg")
+    m = LPIPS("vgg", weights_dir=tmp_path)
+    x = torch.rand(1, 3, 32, 32)
+    assert float(m(x, x)) == 0.0 and float(m(x, 1 - x)) > 0

@@ -1,0 +1,68 @@
+"""Novel viewpoints come from the training cameras only."""
+
+import torch
+
+from wgs.scene.dataset import Frame
+from wgs.scene.orbit import look_at, novel_views
+
+
+def ring(n=4, radius=1.0, height=0.3):
+    import math
+
+    import numpy as np
+
+    K = torch.tensor([[50.0, 0, 32], [0, 50, 32], [0, 0, 1]])
+    out = []
+    for i in range(n):
+        a = 2 * math.pi * i / n + 0.1 * i
+        eye = np.array([radius * math.cos(a), radius * math.sin(a), height])
+        out.append(Frame(f"t{i}.png", K, torch.tensor(look_at(eye, eye * 0, np.array([0, 0, 1.0])),
+                                                        dtype=torch.float32), 64, 64))
+    return out
+
+
+def test_novel_views_between_neighbours_look_at_centre():
+    train = ring()
+    views = novel_views(train, 2, seed=0)
+    assert len(views) == 8
+    for f, dist in views:
+        c = f.center
+        assert abs(float(c.norm()) - float(train[0].center.norm())) < 0.05
+        fwd = f.viewmat[2, :3]
+        torch.testing.assert_close(fwd, -c / c.norm(), atol=1e-5, rtol=0)  # looks at the origin
+        assert dist > 0.05
+
+
+def test_novel_views_do_not_depend_on_test_cameras(tmp_path):
+    """Prepare twice with a test camera moved: everything before eval is identical."""
+    import json
+    import shutil
+    import sys
+    from pathlib import Path
+
+    import numpy as np
+    from click.testing import CliRunner
+
+    from wgs.cli import cli
+    from wgs.scene.dataset import load_prepared
+    from wgs.workspace import Workspace
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+    from make_scene import make_scene
+
+    a = make_scene(tmp_path / "a", seed=4, size=32, n_train=4, n_test=3)
+    b = tmp_path / "b"
+    shutil.copytree(a, b)
+    meta = json.loads((b / "transforms_test.json").read_text())
+    m = np.asarray(meta["frames"][0]["transform_matrix"])
+    m[:3, 3] *= 3.0  # move a test camera far away
+    meta["frames"][0]["transform_matrix"] = m.tolist()
+    (b / "transforms_test.json").write_text(json.dumps(meta))
+    poses = []
+    for src, ws in ((a, tmp_path / "wa"), (b, tmp_path / "wb")):
+        assert CliRunner().invoke(cli, ["-q", "-w", str(ws), "prepare", str(src)]).exit_code == 0
+        sc = load_prepared(Workspace(ws))
+        assert sc.norm.to_json() == load_prepared(Workspace(tmp_path / "wa")).norm.to_json()
+        poses.append([f.viewmat for f, _ in novel_views(sc.train, 2, seed=0)])
+    for p, q in zip(*poses, strict=True):
+        assert torch.equal(p, q)
