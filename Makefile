@@ -23,10 +23,8 @@ examples/scene/transforms_train.json: examples/make_scene.py | $(VENV)/.installe
 	$(BIN)/python examples/make_scene.py examples/scene
 
 demo: $(VENV)/.installed examples/scene/transforms_train.json
-	$(BIN)/wgs -w $(DEMO_WS) prepare examples/scene
-	$(BIN)/wgs -w $(DEMO_WS) coarse --preset fast
-	$(BIN)/wgs -w $(DEMO_WS) render --views test
-	$(BIN)/wgs -w $(DEMO_WS) info
+	$(BIN)/wgs -w $(DEMO_WS) all examples/scene --preset fast
+	@cat $(DEMO_WS)/6_eval/report.md
 
 test: $(VENV)/.installed
 	$(BIN)/python -m pytest -q tests
