@@ -8,7 +8,7 @@ TORCH_SPEC ?= $(if $(shell command -v nvidia-smi 2>/dev/null),torch,torch==2.13.
 DEMO_WS ?= demo_ws
 export NUMBA_CACHE_DIR ?= $(CURDIR)/.numba_cache
 
-.PHONY: setup demo test bench lint clean
+.PHONY: setup demo test bench ablation lint clean
 
 setup: $(VENV)/.installed
 
@@ -32,6 +32,9 @@ test: $(VENV)/.installed
 bench: $(VENV)/.installed
 	$(BIN)/python -m wgs.bench rasterizer --json
 	$(BIN)/python -m wgs.bench pipeline --root bench_out
+
+ablation: $(VENV)/.installed
+	$(BIN)/wgs -w ablate ablate ../shared/data/lego --views 4 --downscale 2
 
 lint: $(VENV)/.installed
 	$(BIN)/ruff check wgs tests examples

@@ -105,5 +105,7 @@ def test_u_early_stopping_stops_when_validation_rises():
                          u_patience=3)
     _, curve = train_hf_unet(cfg, renders, refs, torch.device("cpu"), g)
     assert curve["stopped_at"] < 2000
-    i_best = curve["val"].index(min(curve["val"]))
-    assert len(curve["val"]) - 1 - i_best == 3  # stopped after `patience` evaluations without improvement
+    vals = [curve["identity_val"], *curve["val"]]  # the untrained U (identity) is the first candidate
+    i_best = vals.index(min(vals))
+    assert len(vals) - 1 - i_best == 3  # stopped after `patience` evaluations without improvement
+    assert curve["best_val"] == min(vals) <= curve["identity_val"]

@@ -86,6 +86,7 @@ class FinetuneConfig:
     """The LL-domain repair diffusion model D and the HF U-Net U."""
 
     domain: str = "wavelet"  # wavelet: D on the LL subband + U on HF; rgb: D on RGB, no U
+    levels: int = 1  # Haar levels J: D works at 1/2^J resolution
     use_u: bool = True
     train_timesteps: int = 1000
     d_channels: int = 32  # base width; the U-Net uses (c, 2c, 2c)

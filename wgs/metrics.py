@@ -23,10 +23,10 @@ def psnr(a: torch.Tensor, b: torch.Tensor, max_val: float = 1.0) -> float:
 
 
 def gaussian_window(size: int = 11, sigma: float = 1.5, dtype=torch.float64) -> torch.Tensor:
+    """The normalised 1D Gaussian; the 2D window is its outer product."""
     x = torch.arange(size, dtype=dtype) - size // 2
     g = torch.exp(-(x**2) / (2 * sigma**2))
-    g = g / g.sum()
-    return g[:, None] @ g[None, :]
+    return g / g.sum()
 
 
 def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5) -> float:
@@ -39,11 +39,14 @@ def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5)
     x = a.permute(2, 0, 1)[None].double()
     y = b.permute(2, 0, 1)[None].double()
     c = x.shape[1]
-    w = gaussian_window(window, sigma).to(x.device)[None, None].repeat(c, 1, 1, 1)
+    g = gaussian_window(window, sigma).to(x.device)
+    gx = g.reshape(1, 1, 1, -1).repeat(c, 1, 1, 1)
+    gy = g.reshape(1, 1, -1, 1).repeat(c, 1, 1, 1)
     pad = window // 2
 
     def blur(t: torch.Tensor) -> torch.Tensor:
-        return F.conv2d(t, w, padding=pad, groups=c)
+        # separable: with zero padding, rows then columns equals the 11x11 window exactly
+        return F.conv2d(F.conv2d(t, gx, padding=(0, pad), groups=c), gy, padding=(pad, 0), groups=c)
 
     mu_x, mu_y = blur(x), blur(y)
     sxx = blur(x * x) - mu_x**2

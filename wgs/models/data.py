@@ -6,20 +6,24 @@ import torch
 
 from ..errors import InputError
 from ..wavelet.exr import read_subbands
+from ..wavelet.haar import dwt2
 from ..workspace import Workspace, read_json
 
-# LL of an image in [0, 1] lies in [0, 2] (orthonormal Haar: 2 x block mean); RGB in [0, 1].
-RANGES = {"wavelet": (0.0, 2.0), "rgb": (0.0, 1.0)}
+
+def value_range(domain: str, levels: int = 1) -> tuple[float, float]:
+    """LL_J of an image in [0, 1] lies in [0, 2^J] (orthonormal Haar: 2 x the 2x2 block mean per
+    level); RGB in [0, 1]."""
+    return (0.0, float(2**levels)) if domain == "wavelet" else (0.0, 1.0)
 
 
-def to_model(x: torch.Tensor, domain: str) -> torch.Tensor:
-    """Map values of the domain's range to [-1, 1]."""
-    lo, hi = RANGES[domain]
+def to_model(x: torch.Tensor, domain: str, levels: int = 1) -> torch.Tensor:
+    """Map values of the domain's range to [-1, 1] (the one place values are normalised)."""
+    lo, hi = value_range(domain, levels)
     return (x - lo) * (2.0 / (hi - lo)) - 1.0
 
 
-def from_model(x: torch.Tensor, domain: str) -> torch.Tensor:
-    lo, hi = RANGES[domain]
+def from_model(x: torch.Tensor, domain: str, levels: int = 1) -> torch.Tensor:
+    lo, hi = value_range(domain, levels)
     return (x + 1.0) * ((hi - lo) / 2.0) + lo
 
 
@@ -28,14 +32,18 @@ def hwc(a) -> torch.Tensor:
     return torch.from_numpy(a).permute(2, 0, 1).contiguous()
 
 
-def load_pairs(ws: Workspace, domain: str) -> tuple[torch.Tensor, torch.Tensor, list[dict]]:
-    """Clean and corrupted images of every pair, [P, 3, h, w] each, in model space ([-1, 1])."""
+def load_pairs(ws: Workspace, domain: str, levels: int = 1) -> tuple[torch.Tensor, torch.Tensor, list[dict]]:
+    """Clean and corrupted images of every pair, [P, 3, h, w] each, in model space ([-1, 1]).
+
+    wavelet: the LL subband at `levels` (level 1 from the stored LL pairs, deeper levels from the
+    stored RGB pairs); rgb: the images."""
     index_path = ws.stage_dir("mask_data") / "index.json"
     index = read_json(index_path)
     pairs = index.get("pairs", [])
     if not pairs:
         raise InputError("the mask-data index lists no pairs (too few iterations after the warm-up?)", index_path)
-    key, clean_band, bad_band = ("ll", "LL", "cLL") if domain == "wavelet" else ("rgb", "RGB", "cRGB")
+    deep = domain == "wavelet" and levels > 1
+    key, clean_band, bad_band = ("ll", "LL", "cLL") if domain == "wavelet" and not deep else ("rgb", "RGB", "cRGB")
     clean, bad = [], []
     for p in pairs:
         bands = read_subbands(ws.stage_dir("mask_data") / p[key])
@@ -43,7 +51,10 @@ def load_pairs(ws: Workspace, domain: str) -> tuple[torch.Tensor, torch.Tensor, 
             raise InputError(f"pair file lacks {clean_band}/{bad_band}", ws.stage_dir("mask_data") / p[key])
         clean.append(hwc(bands[clean_band]))
         bad.append(hwc(bands[bad_band]))
-    return to_model(torch.stack(clean), domain), to_model(torch.stack(bad), domain), pairs
+    c, b = torch.stack(clean), torch.stack(bad)
+    if deep:
+        c, b = dwt2(c.double(), levels)[0].float(), dwt2(b.double(), levels)[0].float()
+    return to_model(c, domain, levels), to_model(b, domain, levels), pairs
 
 
 def random_crops(tensors: list[torch.Tensor], idx: torch.Tensor, size: int, gen: torch.Generator,

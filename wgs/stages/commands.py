@@ -47,16 +47,17 @@ def register(cli, stage_common, workspace_option) -> None:
     @click.option("--domain", type=click.Choice(["wavelet", "rgb"]), default=None,
                   help="wavelet: D repairs the LL subband and U the HF ones (default); rgb: D on RGB, no U.")
     @click.option("--no-u", "no_u", is_flag=True, default=None, help="Do not train the HF U-Net.")
+    @click.option("--levels", type=int, default=None, help="Haar levels J (D at 1/2^J resolution; default 1).")
     @click.option("--d-steps", type=int, default=None, help="Training steps of D.")
     @click.option("--u-max-steps", type=int, default=None, help="Step limit of U (early stopping ends it sooner).")
     @stage_common
     @click.pass_obj
-    def finetune(obj, domain, no_u, d_steps, u_max_steps, force, preset):
+    def finetune(obj, domain, no_u, levels, d_steps, u_max_steps, force, preset):
         """Train the repair diffusion model D and the HF U-Net U."""
         from .s3_finetune import run_finetune
 
-        cfg = obj.config("finetune", preset, domain=domain, use_u=False if no_u else None, d_steps=d_steps,
-                         u_max_steps=u_max_steps)
+        cfg = obj.config("finetune", preset, domain=domain, use_u=False if no_u else None, levels=levels,
+                         d_steps=d_steps, u_max_steps=u_max_steps)
         run_finetune(obj.ws(), cfg, obj.torch_device(), obj.seed, force=force)
 
     @cli.command()
@@ -120,6 +121,30 @@ def register(cli, stage_common, workspace_option) -> None:
                      "finetune": {"domain": domain, "use_u": False if no_u else None}}
         outcomes = run_all(obj, scene, preset, force, force_repair, overrides)
         print_summary(obj.ws(), outcomes)
+
+    @cli.command()
+    @click.argument("scene", type=click.Path(path_type=Path))
+    @click.option("--rows", default="paper", show_default=True,
+                  help="paper | all | comma-separated names (loo-rgb, offline-rgb, orm-rgb, orm-wavelet, "
+                       "orm-wavelet-u, 3dgs, orm-wavelet-u-j2).")
+    @click.option("--repeats", type=int, default=1, show_default=True, help="Runs per row (seeds seed..seed+K-1).")
+    @click.option("--views", type=int, default=None, help="Number of training views.")
+    @click.option("--downscale", type=int, default=None, help="Integer image downscale factor.")
+    @click.option("--preset", type=click.Choice(["fast", "default", "paper"]), default=None, help="Budget preset.")
+    @workspace_option
+    @click.pass_obj
+    def ablate(obj, scene, rows, repeats, views, downscale, preset):
+        """The paper's ablation on SCENE: one workspace per row under -w ROOT, and ROOT/ablation.{md,csv,json,png}."""
+        from ..ablation import aggregate, parse_rows, run_ablation, write_outputs
+        from ..progress import results
+
+        if repeats < 1:
+            raise click.BadParameter("must be >= 1", param_hint="--repeats")
+        root = obj.ws().root
+        row_list = parse_rows(rows)
+        records = run_ablation(obj, scene, root, row_list, repeats, preset, {"views": views, "downscale": downscale})
+        write_outputs(root, aggregate(records, row_list), records)
+        results.print((root / "ablation.md").read_text())
 
     @cli.command()
     @click.option("--stage", "stage", type=click.Choice(["coarse", "fine"]), default="coarse", help="Which model.")

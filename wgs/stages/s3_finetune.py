@@ -104,7 +104,10 @@ def train_hf_unet(cfg: FinetuneConfig, renders: torch.Tensor, refs: torch.Tensor
     model = HFUNet(HFUNetConfig(channels=cfg.u_channels)).to(device)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.u_lr)
     curve: dict[str, Any] = {"step": [], "train": [], "val": []}
-    best, best_state, bad_evals, stopped = math.inf, copy.deepcopy(model.state_dict()), 0, cfg.u_max_steps
+    with torch.no_grad():
+        identity = (v_hc - v_hr).abs().mean().item()
+    # the zero-initialised U is the identity repair: it stays the best until a step beats it
+    best, best_state, bad_evals, stopped = identity, copy.deepcopy(model.state_dict()), 0, cfg.u_max_steps
     acc = 0.0
     with progress_bar("finetune U", cfg.u_max_steps) as prog:
         for step in range(1, cfg.u_max_steps + 1):
@@ -132,8 +135,6 @@ def train_hf_unet(cfg: FinetuneConfig, renders: torch.Tensor, refs: torch.Tensor
                         stopped = step
                         break
     model.load_state_dict(best_state)
-    with torch.no_grad():
-        identity = (v_hc - v_hr).abs().mean().item()
     curve.update({"best_val": best, "identity_val": identity, "stopped_at": stopped})
     return model.eval(), curve
 
@@ -186,7 +187,9 @@ def run_finetune(ws: Workspace, cfg: FinetuneConfig, device: torch.device, seed:
             raise InputError("the mask-data stage has not run: run `wgs mask-data` first", ws.stage_dir("mask_data"))
         gen = torch.Generator().manual_seed(seed)
         torch.manual_seed(seed)
-        clean, bad, pairs = load_pairs(ws, cfg.domain)
+        if cfg.levels < 1:
+            raise InputError(f"levels must be >= 1, got {cfg.levels}")
+        clean, bad, pairs = load_pairs(ws, cfg.domain, cfg.levels)
         train_ids, held = split_holdout(clean.shape[0], cfg.holdout, gen)
         with ws.stage_run("finetune", config, fp) as run:
             record = train_and_save(run, ws, cfg, clean, bad, train_ids, held, device, gen)
@@ -202,10 +205,10 @@ def train_and_save(run: StageRun, ws: Workspace, cfg: FinetuneConfig, clean, bad
     t0 = time.perf_counter()
     d_model, d_curve = train_denoiser(cfg, clean[train_ids], bad[train_ids], device, gen)
     d_seconds = time.perf_counter() - t0
-    save_model(run.dir / "D", d_model, {"domain": cfg.domain, "train_timesteps": cfg.train_timesteps,
-                                        })
+    save_model(run.dir / "D", d_model, {"domain": cfg.domain, "levels": cfg.levels,
+                                        "train_timesteps": cfg.train_timesteps})
     ids = held if len(held) else train_ids
-    record: dict[str, Any] = {"domain": cfg.domain, "d_seconds": round(d_seconds, 2),
+    record: dict[str, Any] = {"domain": cfg.domain, "levels": cfg.levels, "d_seconds": round(d_seconds, 2),
                               "d_final_loss": d_curve["loss"][-1], "num_pairs": int(clean.shape[0]),
                               "heldout": heldout_check(cfg, d_model, clean[ids], bad[ids], device)}
     curves: dict[str, Any] = {"D": d_curve}

@@ -35,9 +35,12 @@ def chw_to_hwc(x: torch.Tensor) -> np.ndarray:
 
 @torch.no_grad()
 def repair_image(render: torch.Tensor, D: torch.nn.Module, U: torch.nn.Module | None, domain: str,
-                 cfg: RepairConfig, train_timesteps: int, gen: torch.Generator, device: torch.device
-                 ) -> tuple[torch.Tensor, dict[str, np.ndarray], dict[str, np.ndarray]]:
-    """render [H, W, 3] -> pseudo reference [H, W, 3] and the corrupted / repaired subbands."""
+                 cfg: RepairConfig, train_timesteps: int, gen: torch.Generator, device: torch.device,
+                 levels: int = 1) -> tuple[torch.Tensor, dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """render [H, W, 3] -> pseudo reference [H, W, 3] and the corrupted / repaired subbands.
+
+    wavelet: D repairs LL_J; the coarser HF levels are kept, LL_1 is rebuilt from them, and U
+    repairs the finest HF level with LL_1 as context."""
     sched = DDIMScheduler(train_timesteps)
     x = render.permute(2, 0, 1)[None].double()
     h, w = x.shape[-2:]
@@ -47,16 +50,20 @@ def repair_image(render: torch.Tensor, D: torch.nn.Module, U: torch.nn.Module | 
         bands_in = {"RGB": chw_to_hwc(x)}
         bands_out = {"RGB": chw_to_hwc(out)}
     else:
-        ll, [hf] = dwt2(x, 1)
-        ll_fixed = from_model(sdedit_repair(D, sched, to_model(ll.float(), "wavelet").to(device), cfg.strength,
-                                            cfg.steps, gen).cpu(), "wavelet").double()
+        llJ, highs = dwt2(x, levels)
+        llJ_fixed = from_model(sdedit_repair(D, sched, to_model(llJ.float(), "wavelet", levels).to(device),
+                                             cfg.strength, cfg.steps, gen).cpu(), "wavelet", levels).double()
+        size1 = tuple(highs[0][0].shape[-2:])
+        ll1 = idwt2(llJ, highs[1:], size=size1) if levels > 1 else llJ
+        ll1_fixed = idwt2(llJ_fixed, highs[1:], size=size1) if levels > 1 else llJ_fixed
+        hf = highs[0]
         hf_fixed = hf
         if U is not None:
-            hf_fixed = split_highs(U(stack_highs(hf).float().to(device), ll.float().to(device)).cpu().double())
-        out = idwt2(ll_fixed, [hf_fixed], size=(h, w))
+            hf_fixed = split_highs(U(stack_highs(hf).float().to(device), ll1.float().to(device)).cpu().double())
+        out = idwt2(ll1_fixed, [hf_fixed], size=(h, w))
         names = ("LL", "LH", "HL", "HH")
-        bands_in = dict(zip(names, map(chw_to_hwc, (ll, *hf)), strict=True))
-        bands_out = dict(zip(names, map(chw_to_hwc, (ll_fixed, *hf_fixed)), strict=True))
+        bands_in = dict(zip(names, map(chw_to_hwc, (ll1, *hf)), strict=True))
+        bands_out = dict(zip(names, map(chw_to_hwc, (ll1_fixed, *hf_fixed)), strict=True))
     return out[0].permute(1, 2, 0).clamp(0, 1).float(), bands_in, bands_out
 
 
@@ -102,7 +109,7 @@ def repair_views(run: StageRun, ws: Workspace, scene, cfg: RepairConfig, device:
     for frame, dist in views:
         render, _ = render_frame(splats, frame, device, bg)
         fixed, bands_in, bands_out = repair_image(render, D, U, domain, cfg, d_cfg.get("train_timesteps", 1000),
-                                                  gen, device)
+                                                  gen, device, d_cfg.get("levels", 1))
         stem = frame.name.rsplit(".", 1)[0]
         write_subbands(run.path("corrupted", f"{stem}.exr"), bands_in)
         write_subbands(run.path("repaired", f"{stem}.exr"), bands_out)

@@ -1,0 +1,224 @@
+"""`wgs ablate`: the paper's comparison (Table 2) on one scene, in one command.
+
+Rows share every stage whose inputs are identical: one prepare and one coarse per repeat, one
+mask-data run per masking strategy (its pairs hold both LL and RGB, so every domain reuses them).
+A row's time is the sum of the wall times of the stages its method needs, shared ones included.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import shutil
+import statistics
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .errors import InputError
+from .progress import log
+from .workspace import STAGE_DIRS, Workspace, atomic_write_bytes, atomic_write_json, read_json
+
+
+@dataclass(frozen=True)
+class Row:
+    name: str
+    strategy: str | None  # None: plain 3DGS, no repair
+    domain: str = "wavelet"
+    use_u: bool = False
+    levels: int = 1
+    label: dict[str, bool] = field(default_factory=dict)
+
+
+ROWS: dict[str, Row] = {r.name: r for r in (
+    Row("loo-rgb", "loo", "rgb"),
+    Row("offline-rgb", "offline-rm", "rgb"),
+    Row("orm-rgb", "orm", "rgb"),
+    Row("orm-wavelet", "orm", "wavelet"),
+    Row("orm-wavelet-u", "orm", "wavelet", use_u=True),
+    Row("3dgs", None),
+    Row("orm-wavelet-u-j2", "orm", "wavelet", use_u=True, levels=2),
+)}
+PAPER_ROWS = ("loo-rgb", "offline-rgb", "orm-rgb", "orm-wavelet", "orm-wavelet-u", "3dgs")
+TIME_OF = "orm-wavelet-u"  # plain 3DGS gets the time of the full method
+STAGES_OF_METHOD = ("scene", "coarse", "mask_data", "finetune", "repair", "fine")
+
+
+def parse_rows(spec: str) -> list[Row]:
+    presets = {"paper": list(PAPER_ROWS), "all": list(ROWS)}
+    names = presets.get(spec, [s.strip() for s in spec.split(",") if s.strip()])
+    unknown = [n for n in names if n not in ROWS]
+    if unknown:
+        raise InputError(f"unknown ablation row(s) {', '.join(unknown)} (known: {', '.join(ROWS)})")
+    if "3dgs" in names:  # the baseline's time budget comes from TIME_OF: run it first
+        names = [n for n in names if n != "3dgs"] + ([] if TIME_OF in names else [TIME_OF]) + ["3dgs"]
+    return [ROWS[n] for n in names]
+
+
+def copy_stages(src: Workspace, dst: Workspace, stages: tuple[str, ...]) -> None:
+    """Give `dst` the finished stages of `src` (their manifests keep them fresh there)."""
+    dst.root.mkdir(parents=True, exist_ok=True)
+    for st in stages:
+        s, d = src.stage_dir(st), dst.stage_dir(st)
+        if src.manifest(st) is None:
+            raise InputError(f"shared stage {st} is missing", s)
+        if d.exists() and (dst.manifest(st) or {}).get("fingerprint") == src.manifest(st)["fingerprint"]:
+            continue
+        shutil.rmtree(d, ignore_errors=True)
+        shutil.copytree(s, d)
+
+
+def row_times(ws: Workspace) -> dict[str, float]:
+    return {st: (ws.manifest(st) or {}).get("wall_time_s", 0.0) for st in STAGES_OF_METHOD if ws.manifest(st)}
+
+
+def run_ablation(ctx, scene_dir: Path, root: Path, rows: list[Row], repeats: int, preset: str | None,
+                 prepare_overrides: dict[str, Any]) -> list[dict[str, Any]]:
+    from .stages.s0_prepare import run_prepare
+    from .stages.s1_coarse import run_coarse
+    from .stages.s2_mask_data import run_mask_data
+    from .stages.s3_finetune import run_finetune
+    from .stages.s4_repair import run_repair
+    from .stages.s5_fine import run_fine
+    from .stages.s6_eval import run_eval
+
+    device = ctx.torch_device()
+    records: list[dict[str, Any]] = []
+    for rep in range(repeats):
+        seed = ctx.seed + rep
+        base = root / f"repeat{rep}" if repeats > 1 else root
+        shared = Workspace(base / "_shared")
+        run_prepare(shared, scene_dir, ctx.config("prepare", preset, **prepare_overrides))
+        run_coarse(shared, ctx.config("coarse", preset), device, seed)
+        masks: dict[str, Workspace] = {}
+        timings: dict[str, dict[str, float]] = {}
+        for row in rows:
+            ws = Workspace(base / row.name)
+            log(f"ablate: row {row.name} (repeat {rep + 1}/{repeats})")
+            if row.strategy is None:
+                budget = sum(timings[TIME_OF].values())
+                copy_stages(shared, ws, ("scene",))
+                cfg = ctx.config("coarse", preset)
+                scale = budget / max(shared.manifest("coarse")["train_seconds"], 1e-9)
+                cfg.iterations = int(cfg.iterations * scale)
+                cfg.refine_stop = int(cfg.refine_stop * scale)
+                cfg.max_seconds = budget
+                run_coarse(ws, cfg, device, seed)
+                run_eval(ws, ctx.config("eval", preset), device, final="coarse")
+                timings[row.name] = {"scene": ws.manifest("scene")["wall_time_s"],
+                                     "coarse": ws.manifest("coarse")["wall_time_s"]}
+            else:
+                if row.strategy not in masks:
+                    mws = Workspace(base / f"_mask_{row.strategy}")
+                    copy_stages(shared, mws, ("scene", "coarse"))
+                    md = ctx.config("mask_data", preset, strategy=row.strategy)
+                    run_mask_data(mws, md, device, seed)
+                    masks[row.strategy] = mws
+                copy_stages(masks[row.strategy], ws, ("scene", "coarse", "mask_data"))
+                run_finetune(ws, ctx.config("finetune", preset, domain=row.domain, use_u=row.use_u,
+                                            levels=row.levels), device, seed)
+                run_repair(ws, ctx.config("repair", preset), device, seed)
+                run_fine(ws, ctx.config("fine", preset), device, seed)
+                run_eval(ws, ctx.config("eval", preset), device, final="fine")
+                timings[row.name] = row_times(ws)
+            res = read_json(ws.stage_dir("eval") / "results.json")
+            records.append({"row": row.name, "repeat": rep, "seed": seed, "psnr": res["psnr"], "ssim": res["ssim"],
+                            "lpips": res["lpips"], "time_s": round(sum(timings[row.name].values()), 2),
+                            "stage_times_s": timings[row.name]})
+    return records
+
+
+def aggregate(records: list[dict[str, Any]], rows: list[Row]) -> list[dict[str, Any]]:
+    out = []
+    for row in rows:
+        rs = [r for r in records if r["row"] == row.name]
+        repair = row.strategy is not None
+        agg: dict[str, Any] = {"row": row.name, "strategy": row.strategy, "domain": row.domain if repair else None,
+                               "use_u": row.use_u, "levels": row.levels if repair else None, "repeats": len(rs)}
+        for k in ("psnr", "ssim", "lpips", "time_s"):
+            vals = [r[k] for r in rs if r[k] is not None]
+            agg[k] = statistics.fmean(vals) if vals else None
+            agg[f"{k}_std"] = statistics.pstdev(vals) if len(vals) > 1 else (0.0 if vals else None)
+        stages = sorted({s for r in rs for s in r["stage_times_s"]}, key=list(STAGE_DIRS).index)
+        agg["stage_times_s"] = {s: statistics.fmean(r["stage_times_s"].get(s, 0.0) for r in rs) for s in stages}
+        out.append(agg)
+    return out
+
+
+def pareto(rows: list[dict[str, Any]]) -> set[str]:
+    """Rows no other row beats in both time (lower) and PSNR (higher)."""
+    front = set()
+    for a in rows:
+        if a["psnr"] is None:
+            continue
+        dominated = any(b is not a and b["psnr"] is not None and b["time_s"] <= a["time_s"]
+                        and b["psnr"] >= a["psnr"] and (b["time_s"] < a["time_s"] or b["psnr"] > a["psnr"])
+                        for b in rows)
+        if not dominated:
+            front.add(a["row"])
+    return front
+
+
+def write_outputs(root: Path, agg: list[dict[str, Any]], records: list[dict[str, Any]]) -> None:
+    def f(v, nd=3):
+        return "n/a" if v is None else f"{v:.{nd}f}"
+
+    def pm(r, k, nd):
+        return f(r[k], nd) + (f" ± {f(r[k + '_std'], nd)}" if r["repeats"] > 1 and r[k] is not None else "")
+
+    tick = {True: "✓", False: ""}
+    stages = [s for s in STAGE_DIRS if s != "eval" and any(s in r["stage_times_s"] for r in agg)]
+    lines = ["# wgs ablation (Table 2 of WaveletGaussian)", "",
+             "| row | LOO | offline RM | online RM | wavelet D | U | PSNR | SSIM | LPIPS | time (s) | "
+             + " | ".join(f"{s} (s)" for s in stages) + " |",
+             "| --- | :-: | :-: | :-: | :-: | :-: | ---: | ---: | ---: | ---: | " + " | ".join("---:" for _ in stages)
+             + " |"]
+    for r in agg:
+        st = r["strategy"]
+        cells = [tick[st == "loo"], tick[st == "offline-rm"], tick[st == "orm"],
+                 tick[r["domain"] == "wavelet"] + (f" J={r['levels']}" if (r["levels"] or 1) > 1 else ""),
+                 tick[bool(r["use_u"]) and st is not None]]
+        lines.append(f"| {r['row']} | " + " | ".join(cells) + f" | {pm(r, 'psnr', 2)} | {pm(r, 'ssim', 3)} | "
+                     f"{pm(r, 'lpips', 3)} | {pm(r, 'time_s', 1)} | "
+                     + " | ".join(f(r["stage_times_s"].get(s), 1) for s in stages) + " |")
+    by = {r["row"]: r for r in agg}
+    if "loo-rgb" in by and "orm-wavelet-u" in by:
+        a, b = by["orm-wavelet-u"], by["loo-rgb"]
+        lines += ["", f"time(orm-wavelet-u) / time(loo-rgb) = {a['time_s'] / b['time_s']:.2f}; "
+                      f"PSNR difference {a['psnr'] - b['psnr']:+.2f} dB"]
+    atomic_write_bytes(root / "ablation.md", ("\n".join(lines) + "\n").encode())
+    buf = io.StringIO()
+    cols = ["row", "strategy", "domain", "use_u", "levels", "repeats", "psnr", "psnr_std", "ssim", "ssim_std",
+            "lpips", "lpips_std", "time_s", "time_s_std"] + [f"{s}_s" for s in stages]
+    w = csv.writer(buf)
+    w.writerow(cols)
+    for r in agg:
+        w.writerow([r.get(c) for c in cols[:14]] + [r["stage_times_s"].get(s) for s in stages])
+    atomic_write_bytes(root / "ablation.csv", buf.getvalue().encode())
+    atomic_write_json(root / "ablation.json", {"rows": agg, "runs": records})
+    plot(root / "ablation.png", agg)
+
+
+def plot(path: Path, agg: list[dict[str, Any]]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    front = pareto(agg)
+    has_lpips = any(r["lpips"] is not None for r in agg)
+    fig, axes = plt.subplots(1, 2 if has_lpips else 1, figsize=(10 if has_lpips else 5.5, 3.6), squeeze=False)
+    for ax, key, better in zip(axes[0], ("psnr", "lpips"), ("higher", "lower"), strict=False):
+        pts = [r for r in agg if r[key] is not None]
+        for r in pts:
+            ax.errorbar(r["time_s"], r[key], xerr=r["time_s_std"] or 0, yerr=r[f"{key}_std"] or 0,
+                        fmt="o", color="tab:red" if r["row"] in front else "tab:blue")
+            ax.annotate(r["row"], (r["time_s"], r[key]), textcoords="offset points", xytext=(4, 4), fontsize=7)
+        fr = sorted((r for r in pts if r["row"] in front), key=lambda r: r["time_s"])
+        if key == "psnr" and fr:
+            ax.plot([r["time_s"] for r in fr], [r["psnr"] for r in fr], "--", color="tab:red", label="Pareto front")
+            ax.legend(fontsize=7)
+        ax.set(xlabel="total time (s)", ylabel=f"{key.upper()} ({better} is better)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
