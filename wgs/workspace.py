@@ -46,6 +46,8 @@ UPSTREAM: dict[str, tuple[str, ...]] = {
     "fine": ("scene", "coarse", "repair"),
     "eval": ("scene", "coarse", "fine"),
 }
+COMMANDS = {"scene": "prepare", "coarse": "coarse", "mask_data": "mask-data", "finetune": "finetune",
+            "repair": "repair", "fine": "fine", "eval": "eval"}
 MANIFEST = "manifest.json"
 LOCK = ".wgs.lock"
 
@@ -165,6 +167,21 @@ class Workspace:
         if fp is not None and m.get("fingerprint") != fp:
             return "stale"
         return "fresh"
+
+    def begin(self, stage: str, config: dict[str, Any], extra: Any = None, force: bool = False,
+              requires: tuple[str, ...] = ()) -> str | None:
+        """Call under the lock: the fingerprint to run the stage with, or None when it is fresh."""
+        from .progress import log
+
+        fp = self.stage_fingerprint(stage, config, extra)
+        if not force and self.status(stage, fp) == "fresh":
+            log(f"{COMMANDS[stage]}: up to date, skipped")
+            return None
+        for req in requires:
+            if self.manifest(req) is None:
+                raise InputError(f"the {COMMANDS[req]} stage has not run: run `wgs {COMMANDS[req]}` first",
+                                 self.stage_dir(req))
+        return fp
 
     # -- locking -------------------------------------------------------------------------------
     @contextlib.contextmanager

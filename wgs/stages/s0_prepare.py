@@ -14,11 +14,10 @@ def run_prepare(ws: Workspace, scene_dir: Path, cfg: PrepareConfig, force: bool 
     """Import `scene_dir`; returns False when the workspace was already up to date."""
     scene = load_scene_for_prepare(scene_dir, cfg)
     config = as_dict(cfg)
-    fp = ws.stage_fingerprint("scene", config, {"source": str(scene_dir.resolve()),
-                                                "inputs": scene_inputs_digest(scene)})
     with ws.lock():
-        if not force and ws.status("scene", fp) == "fresh":
-            log("prepare: up to date, skipped")
+        fp = ws.begin("scene", config, {"source": str(scene_dir.resolve()), "inputs": scene_inputs_digest(scene)},
+                      force)
+        if fp is None:
             return False
         for note in scene.notes:
             log(f"  note: {note}")

@@ -60,9 +60,8 @@ def write_coarse_outputs(run: StageRun, scene: PreparedScene, splats: Splats, de
 def run_coarse(ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: int, force: bool = False) -> bool:
     config = as_dict(cfg)
     with ws.lock():
-        fp = ws.stage_fingerprint("coarse", config, {"seed": seed})
-        if not force and ws.status("coarse", fp) == "fresh":
-            log("coarse: up to date, skipped")
+        fp = ws.begin("coarse", config, {"seed": seed}, force)
+        if fp is None:
             return False
         scene = load_prepared(ws)
         torch.manual_seed(seed)

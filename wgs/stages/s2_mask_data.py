@@ -110,12 +110,9 @@ def hf_pairs(ws: Workspace, scene: PreparedScene) -> list[dict[str, str]]:
 def run_mask_data(ws: Workspace, cfg: MaskDataConfig, device: torch.device, seed: int, force: bool = False) -> bool:
     config = as_dict(cfg)
     with ws.lock():
-        fp = ws.stage_fingerprint("mask_data", config, {"seed": seed})
-        if not force and ws.status("mask_data", fp) == "fresh":
-            log("mask-data: up to date, skipped")
+        fp = ws.begin("mask_data", config, {"seed": seed}, force, requires=("coarse",))
+        if fp is None:
             return False
-        if ws.manifest("coarse") is None:
-            raise InputError("the coarse stage has not run: run `wgs coarse` first", ws.stage_dir("coarse"))
         scene = load_prepared(ws)
         torch.manual_seed(seed)
         with ws.stage_run("mask_data", config, fp) as run:

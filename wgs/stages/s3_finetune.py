@@ -179,12 +179,9 @@ def plot_curves(path, curves: dict[str, Any]) -> None:
 def run_finetune(ws: Workspace, cfg: FinetuneConfig, device: torch.device, seed: int, force: bool = False) -> bool:
     config = as_dict(cfg)
     with ws.lock():
-        fp = ws.stage_fingerprint("finetune", config, {"seed": seed})
-        if not force and ws.status("finetune", fp) == "fresh":
-            log("finetune: up to date, skipped")
+        fp = ws.begin("finetune", config, {"seed": seed}, force, requires=("mask_data",))
+        if fp is None:
             return False
-        if ws.manifest("mask_data") is None:
-            raise InputError("the mask-data stage has not run: run `wgs mask-data` first", ws.stage_dir("mask_data"))
         gen = torch.Generator().manual_seed(seed)
         torch.manual_seed(seed)
         if cfg.levels < 1:

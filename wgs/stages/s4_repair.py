@@ -10,7 +10,6 @@ import numpy as np
 import torch
 
 from ..config import RepairConfig, as_dict
-from ..errors import InputError
 from ..gaussians.splats import load_checkpoint
 from ..gaussians.trainer import render_frame
 from ..models.data import from_model, to_model
@@ -75,12 +74,9 @@ def contact_sheet(rows: list[tuple[torch.Tensor, torch.Tensor]]) -> np.ndarray:
 def run_repair(ws: Workspace, cfg: RepairConfig, device: torch.device, seed: int, force: bool = False) -> bool:
     config = as_dict(cfg)
     with ws.lock():
-        fp = ws.stage_fingerprint("repair", config, {"seed": seed})
-        if not force and ws.status("repair", fp) == "fresh":
-            log("repair: up to date, skipped")
+        fp = ws.begin("repair", config, {"seed": seed}, force, requires=("finetune",))
+        if fp is None:
             return False
-        if ws.manifest("finetune") is None:
-            raise InputError("the finetune stage has not run: run `wgs finetune` first", ws.stage_dir("finetune"))
         scene = load_prepared(ws)
         with ws.stage_run("repair", config, fp) as run:
             record = repair_views(run, ws, scene, cfg, device, seed)

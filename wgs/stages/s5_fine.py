@@ -5,7 +5,6 @@ from __future__ import annotations
 import torch
 
 from ..config import FineConfig, as_dict
-from ..errors import InputError
 from ..gaussians.splats import export_ply, load_checkpoint, save_checkpoint, to_world
 from ..gaussians.trainer import PseudoViews, train_gaussians
 from ..progress import log
@@ -55,12 +54,9 @@ def lpips_for_training(cfg: FineConfig, device: torch.device):
 def run_fine(ws: Workspace, cfg: FineConfig, device: torch.device, seed: int, force: bool = False) -> bool:
     config = as_dict(cfg)
     with ws.lock():
-        fp = ws.stage_fingerprint("fine", config, {"seed": seed})
-        if not force and ws.status("fine", fp) == "fresh":
-            log("fine: up to date, skipped")
+        fp = ws.begin("fine", config, {"seed": seed}, force, requires=("repair",))
+        if fp is None:
             return False
-        if ws.manifest("repair") is None:
-            raise InputError("the repair stage has not run: run `wgs repair` first", ws.stage_dir("repair"))
         scene = load_prepared(ws)
         splats, _ = load_checkpoint(ws.stage_dir("coarse") / CKPT, scene.norm)
         frames, weights = load_pseudo_views(ws)

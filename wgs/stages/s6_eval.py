@@ -118,13 +118,9 @@ def run_eval(ws: Workspace, cfg: EvalConfig, device: torch.device, force: bool =
     """Evaluate `final` (fine, or coarse when the repair stages were left out) and G_c."""
     config = as_dict(cfg)
     with ws.lock():
-        fp = ws.stage_fingerprint("eval", config, {"final": final})
-        if not force and ws.status("eval", fp) == "fresh":
-            log("eval: up to date, skipped")
+        fp = ws.begin("eval", config, {"final": final}, force, requires=("coarse", final))
+        if fp is None:
             return False
-        for st in ("coarse", final):
-            if ws.manifest(st) is None:
-                raise InputError(f"the {st} stage has not run", ws.stage_dir(st))
         scene = load_prepared(ws, load_test_images=True)
         if not scene.test:
             raise InputError("the scene has no test views: nothing to evaluate", ws.stage_dir("scene"))
