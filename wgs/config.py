@@ -87,6 +87,13 @@ class FinetuneConfig:
 
     domain: str = "wavelet"  # wavelet: D on the LL subband + U on HF; rgb: D on RGB, no U
     levels: int = 1  # Haar levels J: D works at 1/2^J resolution
+    diffusion: str = "embedded"  # embedded: our CPU-sized denoiser; controlnet: SD 1.5 + ControlNet + LoRA
+    sd_model: str | None = None  # local Stable Diffusion 1.5 folder (controlnet)
+    controlnet: str | None = None  # local ControlNet-tile folder (controlnet)
+    lora_rank: int = 64
+    lora_lr: float = 1e-3
+    lora_steps: int = 500
+    lora_crop: int = 64
     use_u: bool = True
     train_timesteps: int = 1000
     d_channels: int = 32  # base width; the U-Net uses (c, 2c, 2c)
@@ -241,7 +248,7 @@ def as_dict(cfg: Any) -> dict[str, Any]:
 
 
 CHOICES: dict[str, tuple[str, ...]] = {"strategy": ("orm", "offline-rm", "loo"), "domain": ("wavelet", "rgb"),
-                                       "lpips_net": ("alex", "vgg")}
+                                       "lpips_net": ("alex", "vgg"), "diffusion": ("embedded", "controlnet")}
 
 
 def check_choices(cfg: Any) -> None:

@@ -49,15 +49,20 @@ def register(cli, stage_common, workspace_option) -> None:
     @click.option("--no-u", "no_u", is_flag=True, default=None, help="Do not train the HF U-Net.")
     @click.option("--levels", type=int, default=None, help="Haar levels J (D at 1/2^J resolution; default 1).")
     @click.option("--d-steps", type=int, default=None, help="Training steps of D.")
+    @click.option("--diffusion", type=click.Choice(["embedded", "controlnet"]), default=None,
+                  help="embedded: our CPU-sized denoiser (default); controlnet: SD 1.5 + ControlNet-tile + LoRA.")
+    @click.option("--sd-model", type=click.Path(path_type=str), default=None, help="Local Stable Diffusion 1.5 folder.")
+    @click.option("--controlnet", type=click.Path(path_type=str), default=None, help="Local ControlNet-tile folder.")
     @click.option("--u-max-steps", type=int, default=None, help="Step limit of U (early stopping ends it sooner).")
     @stage_common
     @click.pass_obj
-    def finetune(obj, domain, no_u, levels, d_steps, u_max_steps, force, preset):
+    def finetune(obj, domain, no_u, levels, d_steps, diffusion, sd_model, controlnet, u_max_steps, force, preset):
         """Train the repair diffusion model D and the HF U-Net U."""
         from .s3_finetune import run_finetune
 
         cfg = obj.config("finetune", preset, domain=domain, use_u=False if no_u else None, levels=levels,
-                         d_steps=d_steps, u_max_steps=u_max_steps)
+                         d_steps=d_steps, u_max_steps=u_max_steps, diffusion=diffusion, sd_model=sd_model,
+                         controlnet=controlnet)
         run_finetune(obj.ws(), cfg, obj.torch_device(), obj.seed, force=force)
 
     @cli.command()

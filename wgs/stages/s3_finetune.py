@@ -6,6 +6,7 @@ from __future__ import annotations
 import copy
 import math
 import time
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -191,15 +192,45 @@ def run_finetune(ws: Workspace, cfg: FinetuneConfig, device: torch.device, seed:
         with ws.stage_run("finetune", config, fp) as run:
             record = train_and_save(run, ws, cfg, clean, bad, train_ids, held, device, gen)
             run.record.update(record)
-    log(f"finetune: D {record['d_seconds']:.0f} s; held-out L1 {record['heldout']['l1_before']:.4f} -> "
-        f"{record['heldout']['l1_after']:.4f}" + (f"; U {record['u_seconds']:.0f} s, stopped at "
-                                                  f"{record['u_stopped_at']}" if 'u_seconds' in record else ""))
+    held_txt = (f"; held-out L1 {record['heldout']['l1_before']:.4f} -> {record['heldout']['l1_after']:.4f}"
+                if "heldout" in record else "")
+    u_txt = f"; U {record['u_seconds']:.0f} s, stopped at {record['u_stopped_at']}" if "u_seconds" in record else ""
+    log(f"finetune: D {record['d_seconds']:.0f} s{held_txt}{u_txt}")
     return True
+
+
+def train_lora(run: StageRun, cfg: FinetuneConfig, clean, bad, device, gen) -> dict[str, Any]:
+    """SD 1.5 + ControlNet-tile with LoRA on the pairs shown as images in [0, 1] (LL / 2 for J = 1)."""
+    from ..models import controlnet_lora as cl
+
+    if not cfg.sd_model or not cfg.controlnet:
+        raise InputError("--diffusion controlnet needs --sd-model PATH and --controlnet PATH (local folders)")
+    pipe = cl.load_pipeline(Path(cfg.sd_model), Path(cfg.controlnet), device)
+    params = cl.add_lora(pipe, cfg.lora_rank)
+    opt = torch.optim.AdamW(params, lr=cfg.lora_lr)
+    size = max(8, min(cfg.lora_crop, clean.shape[-1], clean.shape[-2]) // 8 * 8)
+    losses = []
+    with progress_bar("finetune D (LoRA)", cfg.lora_steps) as prog:
+        for step in range(1, cfg.lora_steps + 1):
+            idx = torch.randint(clean.shape[0], (1,), generator=gen)
+            c, b = random_crops([clean, bad], idx, size, gen)
+            losses.append(cl.lora_step(pipe, params, opt, ((c + 1) / 2).to(device), ((b + 1) / 2).to(device), gen))
+            prog.update(0, completed=step, status=f"loss {losses[-1]:.4f}")
+    cl.save_lora(run.dir / "D_lora", pipe, {"sd_model": str(Path(cfg.sd_model).resolve()),
+                                            "controlnet": str(Path(cfg.controlnet).resolve()),
+                                            "rank": cfg.lora_rank, "domain": cfg.domain, "levels": cfg.levels})
+    return {"lora_final_loss": losses[-1] if losses else None, "lora_steps": cfg.lora_steps}
 
 
 def train_and_save(run: StageRun, ws: Workspace, cfg: FinetuneConfig, clean, bad, train_ids, held,
                    device: torch.device, gen: torch.Generator) -> dict[str, Any]:
     t0 = time.perf_counter()
+    if cfg.diffusion == "controlnet":
+        record: dict[str, Any] = {"domain": cfg.domain, "levels": cfg.levels, "diffusion": "controlnet",
+                                  **train_lora(run, cfg, clean[train_ids], bad[train_ids], device, gen),
+                                  "d_seconds": round(time.perf_counter() - t0, 2), "num_pairs": int(clean.shape[0])}
+        curves: dict[str, Any] = {}
+        return finish_with_u(run, ws, cfg, record, curves, device, gen)
     d_model, d_curve = train_denoiser(cfg, clean[train_ids], bad[train_ids], device, gen)
     d_seconds = time.perf_counter() - t0
     save_model(run.dir / "D", d_model, {"domain": cfg.domain, "levels": cfg.levels,
@@ -209,6 +240,11 @@ def train_and_save(run: StageRun, ws: Workspace, cfg: FinetuneConfig, clean, bad
                               "d_final_loss": d_curve["loss"][-1], "num_pairs": int(clean.shape[0]),
                               "heldout": heldout_check(cfg, d_model, clean[ids], bad[ids], device)}
     curves: dict[str, Any] = {"D": d_curve}
+    return finish_with_u(run, ws, cfg, record, curves, device, gen)
+
+
+def finish_with_u(run: StageRun, ws: Workspace, cfg: FinetuneConfig, record: dict[str, Any], curves: dict[str, Any],
+                  device: torch.device, gen: torch.Generator) -> dict[str, Any]:
     if cfg.domain == "wavelet" and cfg.use_u:
         t1 = time.perf_counter()
         renders, refs, _ = load_hf_data(ws)
@@ -218,5 +254,6 @@ def train_and_save(run: StageRun, ws: Workspace, cfg: FinetuneConfig, clean, bad
         save_model(run.dir / "U", u_model)
         curves["U"] = u_curve
     atomic_write_json(run.path("curves.json"), curves)
-    plot_curves(run.path("curves.png"), curves)
+    if "D" in curves:
+        plot_curves(run.path("curves.png"), curves)
     return record

@@ -4,6 +4,7 @@ RGB-domain D (`wgs finetune --domain rgb`) D repairs the RGB render and U is not
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -32,26 +33,45 @@ def chw_to_hwc(x: torch.Tensor) -> np.ndarray:
     return x[0].permute(1, 2, 0).float().numpy()
 
 
+RepairFn = Callable[[torch.Tensor], torch.Tensor]  # [B, 3, h, w] model space -> repaired, model space
+
+
+def embedded_repairer(D: torch.nn.Module, cfg: RepairConfig, train_timesteps: int, gen: torch.Generator,
+                      device: torch.device) -> RepairFn:
+    sched = DDIMScheduler(train_timesteps)
+    return lambda x: sdedit_repair(D, sched, x.to(device), cfg.strength, cfg.steps, gen).cpu()
+
+
+def controlnet_repairer(pipe, cfg: RepairConfig, seed: int) -> RepairFn:
+    """SD img2img + ControlNet on images in [0, 1], padded to a multiple of 8 and cropped back."""
+    from ..models import controlnet_lora as cl
+    from ..models.blocks import pad_to_multiple
+
+    def fn(x: torch.Tensor) -> torch.Tensor:
+        img, (h, w) = pad_to_multiple(((x + 1) / 2).clamp(0, 1), 8)
+        out = cl.repair(pipe, img.to(pipe.device), cfg.strength, cfg.steps, seed)
+        return out[..., :h, :w] * 2 - 1
+
+    return fn
+
+
 @torch.no_grad()
-def repair_image(render: torch.Tensor, D: torch.nn.Module, U: torch.nn.Module | None, domain: str,
-                 cfg: RepairConfig, train_timesteps: int, gen: torch.Generator, device: torch.device,
-                 levels: int = 1) -> tuple[torch.Tensor, dict[str, np.ndarray], dict[str, np.ndarray]]:
+def repair_image(render: torch.Tensor, repair_fn: RepairFn, U: torch.nn.Module | None, domain: str,
+                 device: torch.device, levels: int = 1
+                 ) -> tuple[torch.Tensor, dict[str, np.ndarray], dict[str, np.ndarray]]:
     """render [H, W, 3] -> pseudo reference [H, W, 3] and the corrupted / repaired subbands.
 
     wavelet: D repairs LL_J; the coarser HF levels are kept, LL_1 is rebuilt from them, and U
     repairs the finest HF level with LL_1 as context."""
-    sched = DDIMScheduler(train_timesteps)
     x = render.permute(2, 0, 1)[None].double()
     h, w = x.shape[-2:]
     if domain == "rgb":
-        fixed = sdedit_repair(D, sched, to_model(x.float(), "rgb").to(device), cfg.strength, cfg.steps, gen)
-        out = from_model(fixed.cpu(), "rgb").double()
+        out = from_model(repair_fn(to_model(x.float(), "rgb")), "rgb").double()
         bands_in = {"RGB": chw_to_hwc(x)}
         bands_out = {"RGB": chw_to_hwc(out)}
     else:
         llJ, highs = dwt2(x, levels)
-        llJ_fixed = from_model(sdedit_repair(D, sched, to_model(llJ.float(), "wavelet", levels).to(device),
-                                             cfg.strength, cfg.steps, gen).cpu(), "wavelet", levels).double()
+        llJ_fixed = from_model(repair_fn(to_model(llJ.float(), "wavelet", levels)), "wavelet", levels).double()
         size1 = tuple(highs[0][0].shape[-2:])
         ll1 = idwt2(llJ, highs[1:], size=size1) if levels > 1 else llJ
         ll1_fixed = idwt2(llJ_fixed, highs[1:], size=size1) if levels > 1 else llJ_fixed
@@ -91,21 +111,28 @@ def repair_views(run: StageRun, ws: Workspace, scene, cfg: RepairConfig, device:
 
     t0 = time.perf_counter()
     splats, _ = load_checkpoint(ws.stage_dir("coarse") / CKPT, scene.norm, device)
-    D, d_cfg = load_model(ws.stage_dir("finetune") / "D", device)
+    gen = torch.Generator().manual_seed(seed)
+    ft = ws.stage_dir("finetune")
+    if (ft / "D_lora").is_dir():
+        from ..models.controlnet_lora import load_lora
+
+        pipe, d_cfg = load_lora(ft / "D_lora", device)
+        repair_fn = controlnet_repairer(pipe, cfg, seed)
+    else:
+        D, d_cfg = load_model(ft / "D", device)
+        repair_fn = embedded_repairer(D, cfg, d_cfg.get("train_timesteps", 1000), gen, device)
     domain = d_cfg.get("domain", "wavelet")
-    u_dir = ws.stage_dir("finetune") / "U"
+    u_dir = ft / "U"
     U = load_model(u_dir, device)[0] if (domain == "wavelet" and u_dir.is_dir()) else None
     n_pairs = max(1, len(scene.train))
     per_pair = max(1, round(cfg.views_per_train * len(scene.train) / n_pairs))
     views = novel_views(scene.train, per_pair, cfg.arc_min, cfg.arc_max, seed)
-    gen = torch.Generator().manual_seed(seed)
     bg = background_for(scene)
     listing, rows = [], []
     d_max = max(d for _, d in views)
     for frame, dist in views:
         render, _ = render_frame(splats, frame, device, bg)
-        fixed, bands_in, bands_out = repair_image(render, D, U, domain, cfg, d_cfg.get("train_timesteps", 1000),
-                                                  gen, device, d_cfg.get("levels", 1))
+        fixed, bands_in, bands_out = repair_image(render, repair_fn, U, domain, device, d_cfg.get("levels", 1))
         stem = frame.name.rsplit(".", 1)[0]
         write_subbands(run.path("corrupted", f"{stem}.exr"), bands_in)
         write_subbands(run.path("repaired", f"{stem}.exr"), bands_out)
