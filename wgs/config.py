@@ -13,7 +13,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import tomllib
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python 3.10
+    import tomli as tomllib
 
 from .errors import InputError
 
@@ -134,7 +137,7 @@ class FineConfig(TrainConfig):
     pseudo_weight_end: float = 0.5  # reached at pseudo_until of the iterations; 0 after (real views only)
     pseudo_until: float = 0.7
     pseudo_every: int = 2  # one pseudo-view step every k iterations
-    lpips_weight: float = 0.0  # LPIPS on the pseudo views (needs its weights on this machine)
+    lpips_weight: float = 0.1  # LPIPS (VGG) on the pseudo views, used when its weights are on this machine
 
 
 @dataclass
