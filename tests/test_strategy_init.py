@@ -117,3 +117,30 @@ def test_knn_and_floaters():
     assert d.shape == (500,) and d[0] > 10 * d[1:].median()
     m = floater_mask(pts, 8, 3.0)
     assert m[0] and m.sum() < 10
+
+
+def test_strategy_fires_when_a_time_budget_jumps_past_the_interval():
+    params, opts = params_and_opts()
+    strat = DensifyStrategy(refine_start=0, refine_every=100, grad_threshold=1e-3, reset_every=0, prune_opacity=0.0)
+    state = strat.initial_state()
+    means2d = torch.zeros(20, 2, requires_grad=True)
+    means2d.grad = torch.ones(20, 2)
+    meta = {"means2d": means2d, "visible": torch.ones(20, dtype=torch.bool), "width": 8, "height": 8}
+    strat.accumulate(state, meta)
+    assert strat.step(params, opts, state, 150, prev_it=120) == {"cloned": 0, "split": 0, "pruned": 0}
+    out = strat.step(params, opts, state, 250, prev_it=150)  # jumped over 200
+    assert out["cloned"] + out["split"] == 20
+
+
+def test_time_budget_stops_training_and_drives_the_schedule():
+    import time
+
+    from wgs.config import TrainConfig
+    from wgs.gaussians.trainer import train_gaussians
+
+    f = sphere_frames(size=16, n=2)
+    sp = create_splats(torch.randn(100, 3) * 0.1, torch.rand(100, 3), torch.full((100,), 0.05), 0)
+    cfg = TrainConfig(iterations=10**6, max_seconds=1.5, refine_start=10, refine_stop=10**6, floater_every=0)
+    t0 = time.perf_counter()
+    res = train_gaussians(sp, f, cfg, torch.device("cpu"), extent=1.0)
+    assert time.perf_counter() - t0 < 10 and res.iterations < 10**6

@@ -99,10 +99,11 @@ def run_ablation(ctx, scene_dir: Path, root: Path, rows: list[Row], repeats: int
                 budget = sum(timings[TIME_OF].values())
                 copy_stages(shared, ws, ("scene",))
                 cfg = ctx.config("coarse", preset)
+                # the time budget decides: schedules follow its elapsed fraction (iterations only cap it)
                 scale = budget / max(shared.manifest("coarse")["train_seconds"], 1e-9)
-                cfg.iterations = int(cfg.iterations * scale)
-                cfg.refine_stop = int(cfg.refine_stop * scale)
-                cfg.max_seconds = budget
+                cfg.iterations = int(cfg.iterations * scale * 4)
+                cfg.refine_stop = int(cfg.refine_stop * scale * 4)
+                cfg.max_seconds = budget - shared.manifest("scene")["wall_time_s"]
                 run_coarse(ws, cfg, device, seed)
                 run_eval(ws, ctx.config("eval", preset), device, final="coarse")
                 timings[row.name] = {"scene": ws.manifest("scene")["wall_time_s"],

@@ -34,7 +34,7 @@ class TrainConfig:
     """The shared 3DGS training loop (coarse, mask-data, fine)."""
 
     iterations: int = 2000
-    max_seconds: float | None = None
+    max_seconds: float | None = None  # a time budget: schedules then follow the elapsed fraction of it
     sh_degree: int = 2
     sh_increase_every: int = 500
     lr_means: float = 1.6e-4  # times the scene extent

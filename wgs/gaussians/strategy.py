@@ -52,15 +52,22 @@ class DensifyStrategy:
         state["grad2d"][vis] += g[vis].norm(dim=-1)
         state["count"][vis] += 1
 
-    def step(self, params: Params, optimizers: Optimizers, state: dict[str, Any], it: int) -> dict[str, int]:
-        """Refine at the scheduled iterations; returns counts of what changed."""
+    def step(self, params: Params, optimizers: Optimizers, state: dict[str, Any], it: int,
+             prev_it: int | None = None) -> dict[str, int]:
+        """Refine when the schedule position moved from prev_it (default it - 1) past a multiple of the
+        interval (a time budget can advance it by more than one per step); returns what changed."""
+        prev = it - 1 if prev_it is None else prev_it
+
+        def crossed(k: int) -> bool:
+            return k > 0 and prev // k < it // k
+
         out = {"cloned": 0, "split": 0, "pruned": 0}
-        if self.refine_start <= it < self.refine_stop and it % self.refine_every == 0 and state["count"] is not None:
+        if self.refine_start <= it < self.refine_stop and crossed(self.refine_every) and state["count"] is not None:
             out.update(self._grow(params, optimizers, state))
             out["pruned"] = self._prune(params, optimizers, it)
             state["grad2d"] = None
             state["count"] = None
-        if self.reset_every > 0 and it > 0 and it % self.reset_every == 0 and it < self.refine_stop:
+        if it > 0 and crossed(self.reset_every) and it < self.refine_stop:
             reset_opacity(params, optimizers, 2 * self.prune_opacity)
         return out
 

@@ -98,8 +98,13 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
     order: list[int] = []
     t0 = time.perf_counter()
     it = 0
+    sched = prev_sched = 0  # schedule position: the iteration, or the time fraction of a time budget
     with progress_bar(desc, cfg.iterations) as prog:
         for it in range(1, cfg.iterations + 1):
+            prev_sched = sched
+            sched = it
+            if cfg.max_seconds:
+                sched = max(it, int(cfg.iterations * (time.perf_counter() - t0) / cfg.max_seconds))
             if not order:
                 order = torch.randperm(len(frames), generator=gen).tolist()
             i = order.pop()
@@ -109,7 +114,7 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
             else:
                 bg = torch.ones(3, device=device) if masks[i] is not None else torch.zeros(3, device=device)
             target = imgs[i] if masks[i] is None else imgs[i] * masks[i][..., None] + bg * (1 - masks[i][..., None])
-            deg = min(max_deg, (it - 1) // max(cfg.sh_increase_every, 1))
+            deg = min(max_deg, (sched - 1) // max(cfg.sh_increase_every, 1))
             means, quats, scales, opac, sh = activate(params)
             rgb, alpha, meta = rasterize(means, quats, scales, opac, sh[:, : (deg + 1) ** 2], viewmat, K, w, h, bg)
             weight = pixel_weights(i, it) if pixel_weights is not None else None
@@ -118,15 +123,15 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
                 a_err = (alpha[..., 0] - masks[i]).abs()
                 loss = loss + cfg.mask_weight * (a_err.mean() if weight is None else
                                                  (a_err * weight).sum() / weight.sum().clamp_min(1.0))
-            if pseudo is not None and it % pseudo.every == 0 and pseudo.schedule(it) > 0:
-                loss = loss + pseudo_loss(params, pseudo, it, deg, device)
+            if pseudo is not None and it % pseudo.every == 0 and pseudo.schedule(sched) > 0:
+                loss = loss + pseudo_loss(params, pseudo, it, sched, deg, device)
             loss.backward()
             if not torch.isfinite(loss):
                 raise WgsError(f"{desc}: loss became non-finite at iteration {it}; nothing was saved")
             strategy.accumulate(state, meta)
             for name, opt in optimizers.items():
                 if name == "means":
-                    opt.param_groups[0]["lr"] = cfg.lr_means * extent * decay**it
+                    opt.param_groups[0]["lr"] = cfg.lr_means * extent * decay ** min(sched, cfg.iterations)
                 opt.step()
                 opt.zero_grad(set_to_none=True)
             bad = [k for k, p in params.items() if not torch.isfinite(p).all()]
@@ -134,8 +139,9 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
                 raise WgsError(f"{desc}: parameter group(s) {', '.join(bad)} became non-finite at iteration {it}; "
                                "nothing was saved")
             with torch.no_grad():
-                strategy.step(params, optimizers, state, it)
-                if (cfg.floater_every > 0 and it % cfg.floater_every == 0 and it < cfg.refine_stop
+                strategy.step(params, optimizers, state, sched, prev_sched)
+                if (cfg.floater_every > 0 and prev_sched // cfg.floater_every < sched // cfg.floater_every
+                        and sched < cfg.refine_stop
                         and params["means"].shape[0] > 100):
                     drop = floater_mask(params["means"], cfg.floater_k, cfg.floater_lambda)
                     if drop.any():
@@ -148,13 +154,14 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
                 recent = losses[-cfg.log_every:]
                 prog.update(0, completed=it, status=f"loss {sum(recent) / len(recent):.4f}  "
                             f"{params['means'].shape[0]} gaussians  {rate:.1f} it/s")
-            if cfg.max_seconds is not None and time.perf_counter() - t0 > cfg.max_seconds:
+            if cfg.max_seconds and time.perf_counter() - t0 > cfg.max_seconds:
                 break
     out = {k: v.detach() for k, v in params.items()}
     return TrainResult(out, it, time.perf_counter() - t0, losses)
 
 
-def pseudo_loss(params: Splats, pseudo: PseudoViews, it: int, deg: int, device: torch.device) -> torch.Tensor:
+def pseudo_loss(params: Splats, pseudo: PseudoViews, it: int, sched: int, deg: int, device: torch.device
+                ) -> torch.Tensor:
     j = (it // pseudo.every) % len(pseudo.frames)
     f = pseudo.frames[j]
     means, quats, scales, opac, sh = activate(params)
@@ -166,7 +173,7 @@ def pseudo_loss(params: Splats, pseudo: PseudoViews, it: int, deg: int, device: 
     if pseudo.lpips is not None and pseudo.lpips_weight > 0:
         perceptual = pseudo.lpips(rgb.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None]).mean()
         loss = loss + pseudo.lpips_weight * perceptual
-    return pseudo.schedule(it) * pseudo.weights[j] * loss
+    return pseudo.schedule(sched) * pseudo.weights[j] * loss
 
 
 @torch.no_grad()
