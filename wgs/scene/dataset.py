@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
-import numpy as np
 import torch
 
 from ..errors import InputError
@@ -86,4 +84,4 @@ def composite(image: torch.Tensor, mask: torch.Tensor | None, background: torch.
     return image * a + background * (1 - a)
 
 
-__all__ = ["Frame", "PreparedScene", "load_prepared", "composite", "Path", "np"]
+__all__ = ["Frame", "PreparedScene", "load_prepared", "composite"]
