@@ -7,6 +7,7 @@ backgrounds when masks exist, SH degree raised on a schedule, densification and 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable
@@ -57,10 +58,9 @@ def make_optimizers(params: Splats, cfg: TrainConfig, extent: float) -> dict[str
 
 
 def strategy_from(cfg: TrainConfig, extent: float) -> DensifyStrategy:
-    return DensifyStrategy(grad_threshold=cfg.grad_threshold, prune_opacity=cfg.prune_opacity,
-                           grow_scale3d=cfg.grow_scale3d, prune_scale3d=cfg.prune_scale3d,
-                           refine_start=cfg.refine_start, refine_stop=cfg.refine_stop, refine_every=cfg.refine_every,
-                           reset_every=cfg.reset_every, max_gaussians=cfg.max_gaussians, scene_extent=extent)
+    """The strategy's thresholds are the config's fields of the same names."""
+    shared = {f.name: getattr(cfg, f.name) for f in dataclasses.fields(DensifyStrategy) if hasattr(cfg, f.name)}
+    return DensifyStrategy(**shared, scene_extent=extent)
 
 
 def photometric_loss(render: torch.Tensor, target: torch.Tensor, ssim_weight: float,
