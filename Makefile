@@ -8,7 +8,7 @@ TORCH_SPEC ?= $(if $(shell command -v nvidia-smi 2>/dev/null),torch,torch==2.13.
 DEMO_WS ?= demo_ws
 export NUMBA_CACHE_DIR ?= $(CURDIR)/.numba_cache
 
-.PHONY: setup demo test bench ablation lint clean
+.PHONY: setup demo test bench ablation stress lint clean
 
 setup: $(VENV)/.installed
 
@@ -35,6 +35,11 @@ bench: $(VENV)/.installed
 
 ablation: $(VENV)/.installed
 	$(BIN)/wgs -w ablate ablate ../shared/data/lego --views 4 --downscale 2
+
+# Slow robustness checks: SIGKILL at points spread over every stage + rerun; long loader fuzzing.
+stress: $(VENV)/.installed
+	$(BIN)/python -m wgs.stress kill-loop --kills 14
+	HYPOTHESIS_PROFILE=stress $(BIN)/python -m pytest -q tests/test_fuzz_loaders.py
 
 lint: $(VENV)/.installed
 	$(BIN)/ruff check wgs tests examples

@@ -87,13 +87,17 @@ def run_ablation(ctx, scene_dir: Path, root: Path, rows: list[Row], repeats: int
     for rep in range(repeats):
         seed = ctx.seed + rep
         base = root / f"repeat{rep}" if repeats > 1 else root
-        shared = Workspace(base / "_shared")
+
+        def workspace(name: str, base: Path = base) -> Workspace:
+            return Workspace(base / name, resume=ctx.resume, checkpoint_every=ctx.checkpoint_every)
+
+        shared = workspace("_shared")
         run_prepare(shared, scene_dir, ctx.config("prepare", preset, **prepare_overrides))
         run_coarse(shared, ctx.config("coarse", preset), device, seed)
         masks: dict[str, Workspace] = {}
         timings: dict[str, dict[str, float]] = {}
         for row in rows:
-            ws = Workspace(base / row.name)
+            ws = workspace(row.name)
             log(f"ablate: row {row.name} (repeat {rep + 1}/{repeats})")
             if row.strategy is None:
                 budget = sum(timings[TIME_OF].values())
@@ -110,7 +114,7 @@ def run_ablation(ctx, scene_dir: Path, root: Path, rows: list[Row], repeats: int
                                      "coarse": ws.manifest("coarse")["wall_time_s"]}
             else:
                 if row.strategy not in masks:
-                    mws = Workspace(base / f"_mask_{row.strategy}")
+                    mws = workspace(f"_mask_{row.strategy}")
                     copy_stages(shared, mws, ("scene", "coarse"))
                     md = ctx.config("mask_data", preset, strategy=row.strategy)
                     run_mask_data(mws, md, device, seed)

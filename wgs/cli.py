@@ -16,7 +16,8 @@ import click
 from . import __version__
 from .config import as_dict, load_config_file, resolve
 from .errors import WgsError
-from .progress import console, log, results, set_quiet
+from .progress import log, results, set_quiet
+from .resume import Interrupted
 from .workspace import STAGE_DIRS, Workspace
 
 HELP = """WaveletGaussian: sparse-view 3D Gaussian object reconstruction.
@@ -39,11 +40,13 @@ class Ctx:
     seed: int
     debug: bool
     file_cfg: dict[str, Any] = field(default_factory=dict)
+    resume: bool = False
+    checkpoint_every: float = 60.0
 
     def ws(self) -> Workspace:
         if self.workspace is None:
             raise WgsError("no workspace: pass -w/--workspace DIR")
-        return Workspace(self.workspace)
+        return Workspace(self.workspace, resume=self.resume, checkpoint_every=self.checkpoint_every)
 
     def config(self, stage: str, preset: str | None, **cli: Any) -> Any:
         return resolve(stage, preset or self.file_cfg.get("global", {}).get("preset"), self.file_cfg, cli)
@@ -63,14 +66,17 @@ class Ctx:
 @click.option("--quiet", "-q", is_flag=True, help="Only errors and final results.")
 @click.option("--config", "config_file", type=click.Path(path_type=Path), help="wgs.toml: one table per stage.")
 @click.option("--debug", is_flag=True, help="Show tracebacks.")
+@click.option("--resume", is_flag=True, help="Continue an interrupted stage from its saved state.")
+@click.option("--checkpoint-every", type=click.FloatRange(min=0), default=60.0, show_default=True,
+              help="Seconds between saved states inside long training loops.")
 @click.version_option(__version__, prog_name="wgs")
 @click.pass_context
-def cli(ctx: click.Context, workspace, device, seed, quiet, config_file, debug) -> None:
+def cli(ctx: click.Context, workspace, device, seed, quiet, config_file, debug, resume, checkpoint_every) -> None:
     set_quiet(quiet)
     file_cfg = load_config_file(config_file) if config_file else {"global": {}}
     g = file_cfg["global"]
     ctx.obj = Ctx(workspace, device or g.get("device", "auto"), seed if seed is not None else g.get("seed", 0),
-                  debug, file_cfg)
+                  debug, file_cfg, resume, checkpoint_every)
 
 
 def workspace_option(f):
@@ -147,24 +153,27 @@ def _register_stages() -> None:
     commands.register(cli, stage_common, workspace_option)
 
 
+INTERRUPTED = "interrupted: finished stages are kept; `wgs --resume ...` continues from the last saved state"
+
+
 def main(argv: list[str] | None = None) -> None:
     debug = "--debug" in (argv if argv is not None else sys.argv[1:])
     try:
         cli.main(args=argv, prog_name="wgs", standalone_mode=False)
-    except click.exceptions.Abort:
-        console.print("[red]interrupted[/]: the workspace keeps its last good state; rerun to continue")
+    except (click.exceptions.Abort, KeyboardInterrupt):
+        click.echo(INTERRUPTED, err=True)
         sys.exit(130)
     except click.ClickException as exc:
         exc.show()
         sys.exit(exc.exit_code)
+    except Interrupted as exc:
+        click.echo(f"interrupted: {exc}", err=True)
+        sys.exit(130)
     except WgsError as exc:
         if debug:
             raise
         click.echo(f"error: {exc}", err=True)
         sys.exit(2)
-    except KeyboardInterrupt:
-        click.echo("interrupted: the workspace keeps its last good state; rerun to continue", err=True)
-        sys.exit(130)
     except OSError as exc:
         if debug:
             raise

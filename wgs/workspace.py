@@ -27,6 +27,7 @@ from typing import Any
 
 from . import __version__
 from .errors import InputError, WgsError, WorkspaceLocked
+from .resume import Checkpointer
 
 STAGE_DIRS: dict[str, str] = {
     "scene": "scene",
@@ -50,6 +51,7 @@ COMMANDS = {"scene": "prepare", "coarse": "coarse", "mask_data": "mask-data", "f
             "repair": "repair", "fine": "fine", "eval": "eval"}
 MANIFEST = "manifest.json"
 LOCK = ".wgs.lock"
+RESUME = ".resume"  # WS/.resume/<stage dir>/: staging folder `out/`, loop checkpoints `*.pt`, `fingerprint`
 
 
 # ----------------------------------------------------------------------------- atomic writes
@@ -113,27 +115,41 @@ def peak_memory_mb() -> float:
 # ----------------------------------------------------------------------------- the workspace
 @dataclass
 class StageRun:
-    """A stage in progress: write outputs under `dir`; `record` goes into the manifest."""
+    """A stage in progress: write outputs under `dir`; `record` goes into the manifest; long loops
+    save their state through `checkpointer(key)`."""
 
     stage: str
     dir: Path
     record: dict[str, Any] = field(default_factory=dict)
+    resume: bool = False
+    checkpoint_every: float = 60.0
 
     def path(self, *parts: str) -> Path:
         p = self.dir.joinpath(*parts)
         p.parent.mkdir(parents=True, exist_ok=True)
         return p
 
+    def checkpointer(self, key: str) -> Checkpointer:
+        return Checkpointer(self.dir.parent / f"{key}.pt", self.checkpoint_every, self.resume)
+
 
 class Workspace:
-    def __init__(self, root: str | Path):
+    """resume: continue interrupted stages from their saved state; checkpoint_every: seconds
+    between state saves inside long loops."""
+
+    def __init__(self, root: str | Path, resume: bool = False, checkpoint_every: float = 60.0):
         self.root = Path(root)
+        self.resume = resume
+        self.checkpoint_every = checkpoint_every
 
     def __repr__(self) -> str:
         return f"Workspace({str(self.root)!r})"
 
     def stage_dir(self, stage: str) -> Path:
         return self.root / STAGE_DIRS[stage]
+
+    def resume_dir(self, stage: str) -> Path:
+        return self.root / RESUME / STAGE_DIRS[stage]
 
     def manifest(self, stage: str) -> dict[str, Any] | None:
         """The stage's manifest when it finished successfully, else None."""
@@ -226,22 +242,56 @@ class Workspace:
                     shutil.rmtree(old, ignore_errors=True)
             for tmp in self.root.glob(f".{name}.tmp-*"):
                 shutil.rmtree(tmp, ignore_errors=True)
+        for stage in STAGE_DIRS:  # killed after the swap, before the clean-up
+            m = self.manifest(stage)
+            if m is not None and _read_text(self.resume_dir(stage) / "fingerprint") == m.get("fingerprint"):
+                self._drop_resume(stage)
+
+    def _drop_resume(self, stage: str) -> None:
+        shutil.rmtree(self.resume_dir(stage), ignore_errors=True)
+        with contextlib.suppress(OSError):
+            self.resume_dir(stage).parent.rmdir()  # only when empty
+
+    def _drop_unresumable(self, stage: str) -> None:
+        """A failed stage keeps its folder under .resume/ only when a loop saved its state there."""
+        rdir = self.resume_dir(stage)
+        if not any(rdir.glob("*.pt")):
+            self._drop_resume(stage)
+
+    def _prepare_resume(self, stage: str, fp: str) -> Path:
+        """The staging folder: kept from an interrupted run of the same fingerprint with --resume,
+        else emptied."""
+        from .progress import log
+
+        rdir = self.resume_dir(stage)
+        old = _read_text(rdir / "fingerprint")
+        if rdir.exists():
+            if self.resume and old == fp:
+                log(f"{COMMANDS[stage]}: resuming from the saved state")
+                return rdir / "out"
+            if not self.resume and any(rdir.glob("*.pt")):
+                log(f"{COMMANDS[stage]}: starting over (add --resume to continue from the saved state)")
+            elif self.resume:
+                log(f"{COMMANDS[stage]}: the saved state belongs to other inputs or settings: starting over")
+            shutil.rmtree(rdir)
+        (rdir / "out").mkdir(parents=True)
+        atomic_write_bytes(rdir / "fingerprint", fp.encode())
+        return rdir / "out"
 
     # -- running a stage -------------------------------------------------------------------------
     @contextlib.contextmanager
     def stage_run(self, stage: str, config: dict[str, Any], fp: str) -> Iterator[StageRun]:
         """Stage outputs go to a staging folder, swapped in with the manifest only on success."""
         name = STAGE_DIRS[stage]
-        staging = self.root / f".{name}.tmp-{os.getpid()}"
-        shutil.rmtree(staging, ignore_errors=True)
-        staging.mkdir(parents=True)
-        run = StageRun(stage, staging)
+        staging = self._prepare_resume(stage, fp)
+        run = StageRun(stage, staging, resume=self.resume, checkpoint_every=self.checkpoint_every)
         t0 = time.perf_counter()
         try:
             yield run
-        except BaseException:
-            shutil.rmtree(staging, ignore_errors=True)
+        except Exception:
+            self._drop_unresumable(stage)
             raise
+        # on Ctrl-C (KeyboardInterrupt) or SIGKILL the staging folder stays for --resume
         manifest = {
             "stage": stage,
             "status": "done",
@@ -261,7 +311,15 @@ class Workspace:
             final.rename(old)
         staging.rename(final)
         shutil.rmtree(old, ignore_errors=True)
+        self._drop_resume(stage)
         # Downstream stages are now stale through their recorded upstream fingerprints.
+
+
+def _read_text(path: Path) -> str | None:
+    try:
+        return path.read_text()
+    except (OSError, UnicodeDecodeError):
+        return None
 
 
 def _read_lock(path: Path) -> dict[str, Any] | None:

@@ -19,6 +19,7 @@ import torch
 from ..config import TrainConfig
 from ..errors import WgsError
 from ..progress import progress_bar
+from ..resume import Checkpointer, check_interrupt, deferred_sigint, rng_state, set_rng_state
 from ..scene.dataset import Frame
 from .init import floater_mask
 from .render import rasterize
@@ -77,12 +78,13 @@ def photometric_loss(render: torch.Tensor, target: torch.Tensor, ssim_weight: fl
 def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, device: torch.device, *, extent: float,
                     desc: str = "train", seed: int = 0, pixel_weights: PixelWeights | None = None,
                     has_masks: bool = True, on_step: Callable[[int, Splats], None] | None = None,
-                    pseudo: PseudoViews | None = None) -> TrainResult:
+                    pseudo: PseudoViews | None = None, checkpoint: Checkpointer | None = None) -> TrainResult:
     """Optimise `splats` (raw, normalised world) on `frames` (with images). Returns the new splats.
 
     pixel_weights(i, it) -> [H, W] supervision weights for frame i (None: all pixels count);
     on_step(it, params) is called after every iteration with the current (detached) parameters.
     pseudo: extra views trained with L1 + L2 (+ LPIPS) every `pseudo.every` iterations.
+    checkpoint: saves the full state periodically, at the end and on Ctrl-C; continues from it on --resume.
     """
     params = {k: v.detach().to(device).clone().requires_grad_(True) for k, v in splats.items()}
     optimizers = make_optimizers(params, cfg, extent)
@@ -99,8 +101,30 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
     t0 = time.perf_counter()
     it = 0
     sched = prev_sched = 0  # schedule position: the iteration, or the time fraction of a time budget
-    with progress_bar(desc, cfg.iterations) as prog:
-        for it in range(1, cfg.iterations + 1):
+    finished = False
+    saved = checkpoint.load() if checkpoint is not None else None
+    if saved is not None:
+        params = {k: v.to(device).requires_grad_(True) for k, v in saved["params"].items()}
+        optimizers = make_optimizers(params, cfg, extent)
+        for k, opt in optimizers.items():
+            opt.load_state_dict(saved["optimizers"][k])
+        state = {k: (None if v is None else v.to(device)) for k, v in saved["strategy"].items()}
+        gen.set_state(saved["generator"])
+        set_rng_state(saved["rng"])
+        losses, order, it, sched = list(saved["losses"]), list(saved["order"]), saved["it"], saved["sched"]
+        t0 -= saved["elapsed"]
+        finished = saved["finished"]
+
+    def snapshot() -> dict:
+        return {"params": {k: v.detach().cpu() for k, v in params.items()},
+                "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
+                "strategy": {k: (None if v is None else v.cpu()) for k, v in state.items()},
+                "generator": gen.get_state(), "rng": rng_state(), "losses": losses, "order": order,
+                "it": it, "sched": sched, "elapsed": time.perf_counter() - t0, "finished": finished}
+
+    with progress_bar(desc, cfg.iterations) as prog, deferred_sigint():
+        prog.update(0, completed=it)
+        for it in range(it + 1, (it if finished else cfg.iterations) + 1):  # noqa: B020 - resumes the count
             prev_sched = sched
             sched = it
             if cfg.max_seconds:
@@ -154,7 +178,11 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
                 recent = losses[-cfg.log_every:]
                 prog.update(0, completed=it, status=f"loss {sum(recent) / len(recent):.4f}  "
                             f"{params['means'].shape[0]} gaussians  {rate:.1f} it/s")
-            if cfg.max_seconds and time.perf_counter() - t0 > cfg.max_seconds:
+            finished = it == cfg.iterations or bool(cfg.max_seconds and time.perf_counter() - t0 > cfg.max_seconds)
+            if checkpoint is not None and (finished or checkpoint.due()):
+                checkpoint.save(snapshot())
+            check_interrupt(desc, it, checkpoint, snapshot)
+            if finished:
                 break
     out = {k: v.detach() for k, v in params.items()}
     return TrainResult(out, it, time.perf_counter() - t0, losses)

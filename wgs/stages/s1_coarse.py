@@ -70,7 +70,7 @@ def run_coarse(ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: int
             f"{cfg.iterations} iterations on {device}")
         with ws.stage_run("coarse", config, fp) as run:
             res = train_gaussians(splats, scene.train, cfg, device, extent=1.0, desc="coarse", seed=seed,
-                                  has_masks=scene.has_masks)
+                                  has_masks=scene.has_masks, checkpoint=run.checkpointer("gc"))
             save_checkpoint(run.path(CKPT), res.splats, scene.norm, res.iterations)
             n_ply = export_ply(run.path(PLY), to_world(res.splats, scene.norm))
             per_view = write_coarse_outputs(run, scene, res.splats, device)

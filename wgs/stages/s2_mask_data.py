@@ -23,7 +23,7 @@ from ..masking import make_region_masks
 from ..progress import log
 from ..scene.dataset import PreparedScene, composite, load_prepared
 from ..wavelet.exr import write_subbands
-from ..workspace import STAGE_DIRS, StageRun, Workspace, atomic_write_json
+from ..workspace import STAGE_DIRS, StageRun, Workspace, atomic_write_json, read_json
 from .s1_coarse import background_for, initial_splats, subbands_hwc
 
 INDEX = "index.json"
@@ -37,7 +37,15 @@ class PairWriter:
         self.bg = background_for(scene)
         self.refs = [composite(f.image, f.mask, self.bg) for f in scene.train]
         self.ref_bands = [subbands_hwc(r) for r in self.refs]
-        self.pairs: list[dict[str, Any]] = []
+        # (model, iteration, view) -> entry, in write order; persisted so a resumed run keeps earlier pairs
+        self.entries_file = run.path("pairs", "entries.json")
+        self.entries: dict[str, dict[str, Any]] = {}
+        if self.entries_file.exists():
+            self.entries = {e["key"]: e for e in read_json(self.entries_file)}
+
+    @property
+    def pairs(self) -> list[dict[str, Any]]:
+        return [{"id": i, **{k: v for k, v in e.items() if k != "key"}} for i, e in enumerate(self.entries.values())]
 
     def write(self, splats: Splats, view: int, it: int, hidden: torch.Tensor | None, model: str) -> None:
         f = self.scene.train[view]
@@ -52,8 +60,10 @@ class PairWriter:
         rgb_file = f"pairs/rgb/{stem}.exr"
         write_subbands(self.run.path(rgb_file), {"RGB": self.refs[view].numpy(), "cRGB": render.numpy(),
                                                  "M": hid[..., None].numpy()})
-        self.pairs.append({"id": len(self.pairs), "view": f.name, "iteration": it, "model": model,
-                           "ll": ll_file, "rgb": rgb_file})
+        key = f"{model}/{it}/{view}"
+        self.entries[key] = {"key": key, "view": f.name, "iteration": it, "model": model, "ll": ll_file,
+                             "rgb": rgb_file}
+        atomic_write_json(self.entries_file, list(self.entries.values()))
 
 
 def run_orm(cfg: MaskDataConfig, scene: PreparedScene, device: torch.device, seed: int, writer: PairWriter
@@ -72,7 +82,7 @@ def run_orm(cfg: MaskDataConfig, scene: PreparedScene, device: torch.device, see
 
     res = train_gaussians(initial_splats(scene, cfg, seed), scene.train, cfg, device, extent=1.0,
                           desc=f"mask-data {cfg.strategy}", seed=seed, pixel_weights=weights,
-                          has_masks=scene.has_masks, on_step=snapshot)
+                          has_masks=scene.has_masks, on_step=snapshot, checkpoint=writer.run.checkpointer("gd"))
     return {"models": 1, "iterations": res.iterations}
 
 
@@ -89,7 +99,7 @@ def run_loo(cfg: MaskDataConfig, scene: PreparedScene, device: torch.device, see
 
         train_gaussians(initial_splats(sub, cfg, seed), keep, cfg, device, extent=1.0,
                         desc=f"mask-data loo {left_out + 1}/{n}", seed=seed, has_masks=scene.has_masks,
-                        on_step=snapshot)
+                        on_step=snapshot, checkpoint=writer.run.checkpointer(f"loo{left_out}"))
     return {"models": n, "iterations": cfg.iterations * n}
 
 

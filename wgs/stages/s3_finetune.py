@@ -12,7 +12,7 @@ from typing import Any
 import torch
 
 from ..config import FinetuneConfig, as_dict
-from ..errors import InputError
+from ..errors import InputError, WgsError
 from ..metrics import psnr
 from ..models.data import hwc, load_pairs, random_crops
 from ..models.hf_unet import HFUNet, HFUNetConfig
@@ -21,6 +21,7 @@ from ..models.sampling import sdedit_repair
 from ..models.scheduler import DDIMScheduler
 from ..models.storage import save_model
 from ..progress import log, progress_bar
+from ..resume import Checkpointer, check_interrupt, deferred_sigint, rng_state, set_rng_state
 from ..wavelet.exr import read_subbands
 from ..wavelet.haar import dwt2, idwt2, stack_highs
 from ..workspace import StageRun, Workspace, atomic_write_json, read_json
@@ -33,7 +34,8 @@ def split_holdout(n: int, frac: float, gen: torch.Generator) -> tuple[torch.Tens
 
 
 def train_denoiser(cfg: FinetuneConfig, clean: torch.Tensor, bad: torch.Tensor, device: torch.device,
-                   gen: torch.Generator) -> tuple[LLDenoiser, dict[str, list[float]]]:
+                   gen: torch.Generator, checkpoint: Checkpointer | None = None
+                   ) -> tuple[LLDenoiser, dict[str, list[float]]]:
     """Denoising training (sample prediction, MSE to the clean crop) on random crops of (clean,
     corrupted) pairs [P, 3, h, w]; returns the EMA weights."""
     model = LLDenoiser(LLDenoiserConfig(3, cfg.d_channels)).to(device)
@@ -41,14 +43,30 @@ def train_denoiser(cfg: FinetuneConfig, clean: torch.Tensor, bad: torch.Tensor, 
     sched = DDIMScheduler(cfg.train_timesteps)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.d_lr, weight_decay=0.0)
     curve: dict[str, list[float]] = {"step": [], "loss": []}
-    acc = 0.0
-    with progress_bar("finetune D", cfg.d_steps) as prog:
-        for step in range(1, cfg.d_steps + 1):
+    acc, done = 0.0, 0
+    if checkpoint is not None and (saved := checkpoint.load()) is not None:
+        model.load_state_dict(saved["model"])
+        ema.load_state_dict(saved["ema"])
+        opt.load_state_dict(saved["opt"])
+        gen.set_state(saved["generator"])
+        set_rng_state(saved["rng"])
+        curve, acc, done = saved["curve"], saved["acc"], saved["step"]
+
+    def snapshot() -> dict[str, Any]:
+        return {"model": model.state_dict(), "ema": ema.state_dict(), "opt": opt.state_dict(),
+                "generator": gen.get_state(), "rng": rng_state(), "curve": curve, "acc": acc, "step": step}
+
+    step = done
+    with progress_bar("finetune D", cfg.d_steps) as prog, deferred_sigint():
+        prog.update(0, completed=done)
+        for step in range(done + 1, cfg.d_steps + 1):
             idx = torch.randint(clean.shape[0], (cfg.d_batch,), generator=gen)
             x0, c = (t.to(device) for t in random_crops([clean, bad], idx, cfg.d_crop, gen))
             t = torch.randint(cfg.train_timesteps, (x0.shape[0],), generator=gen)
             noise = torch.randn(x0.shape, generator=gen).to(device)
             loss = torch.nn.functional.mse_loss(model(sched.add_noise(x0, noise, t), t.to(device), c), x0)
+            if not math.isfinite(loss.item()):
+                raise WgsError(f"finetune D: the training loss became non-finite at step {step}; nothing was saved")
             opt.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
@@ -63,8 +81,9 @@ def train_denoiser(cfg: FinetuneConfig, clean: torch.Tensor, bad: torch.Tensor, 
                 curve["loss"].append(acc / n)
                 acc = 0.0
                 prog.update(0, completed=step, status=f"loss {curve['loss'][-1]:.4f}")
-            if not math.isfinite(loss.item()):
-                raise InputError(f"D's training loss became non-finite at step {step}")
+            if checkpoint is not None and (step == cfg.d_steps or checkpoint.due()):
+                checkpoint.save(snapshot())
+            check_interrupt("finetune D", step, checkpoint, snapshot)
     return ema, curve
 
 
@@ -93,7 +112,7 @@ def hf_batch(render: torch.Tensor, ref: torch.Tensor) -> tuple[torch.Tensor, tor
 
 
 def train_hf_unet(cfg: FinetuneConfig, renders: torch.Tensor, refs: torch.Tensor, device: torch.device,
-                  gen: torch.Generator) -> tuple[HFUNet, dict[str, Any]]:
+                  gen: torch.Generator, checkpoint: Checkpointer | None = None) -> tuple[HFUNet, dict[str, Any]]:
     """L1 on HF subbands of augmented crops; early stopping on held-out crops (a held-out view when
     there are 3 or more, else fixed crops)."""
     n = renders.shape[0]
@@ -104,14 +123,27 @@ def train_hf_unet(cfg: FinetuneConfig, renders: torch.Tensor, refs: torch.Tensor
     v_hc, v_ll, v_hr = (t.to(device) for t in hf_batch(*val))
     model = HFUNet(HFUNetConfig(channels=cfg.u_channels)).to(device)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.u_lr)
-    curve: dict[str, Any] = {"step": [], "train": [], "val": []}
     with torch.no_grad():
         identity = (v_hc - v_hr).abs().mean().item()
     # the zero-initialised U is the identity repair: it stays the best until a step beats it
-    best, best_state, bad_evals, stopped = identity, copy.deepcopy(model.state_dict()), 0, cfg.u_max_steps
-    acc = 0.0
-    with progress_bar("finetune U", cfg.u_max_steps) as prog:
-        for step in range(1, cfg.u_max_steps + 1):
+    st: dict[str, Any] = {"curve": {"step": [], "train": [], "val": []}, "best": identity,
+                          "best_state": copy.deepcopy(model.state_dict()), "bad_evals": 0,
+                          "stopped": cfg.u_max_steps, "acc": 0.0, "step": 0, "finished": False}
+    if checkpoint is not None and (saved := checkpoint.load()) is not None:
+        model.load_state_dict(saved["model"])
+        opt.load_state_dict(saved["opt"])
+        gen.set_state(saved["generator"])
+        set_rng_state(saved["rng"])
+        st = saved["loop"]
+
+    def snapshot() -> dict[str, Any]:
+        return {"model": model.state_dict(), "opt": opt.state_dict(), "generator": gen.get_state(),
+                "rng": rng_state(), "loop": st}
+
+    curve = st["curve"]
+    last = st["step"] if st["finished"] else cfg.u_max_steps
+    with progress_bar("finetune U", cfg.u_max_steps) as prog, deferred_sigint():
+        for step in range(st["step"] + 1, last + 1):
             idx = train_ids[torch.randint(len(train_ids), (cfg.u_batch,), generator=gen)]
             hc, ll, hr = (t.to(device) for t in hf_batch(*random_crops([renders, refs], idx, 2 * cfg.u_crop, gen,
                                                                          align=2)))
@@ -119,24 +151,30 @@ def train_hf_unet(cfg: FinetuneConfig, renders: torch.Tensor, refs: torch.Tensor
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
-            acc += loss.item()
+            st["acc"] += loss.item()
+            st["step"] = step
             if step % cfg.u_eval_every == 0:
                 with torch.no_grad():
                     vl = (model(v_hc, v_ll) - v_hr).abs().mean().item()
                 curve["step"].append(step)
-                curve["train"].append(acc / cfg.u_eval_every)
+                curve["train"].append(st["acc"] / cfg.u_eval_every)
                 curve["val"].append(vl)
-                acc = 0.0
+                st["acc"] = 0.0
                 prog.update(0, completed=step, status=f"val L1 {vl:.5f}")
-                if vl < best - 1e-7:
-                    best, best_state, bad_evals = vl, copy.deepcopy(model.state_dict()), 0
+                if vl < st["best"] - 1e-7:
+                    st["best"], st["best_state"], st["bad_evals"] = vl, copy.deepcopy(model.state_dict()), 0
                 else:
-                    bad_evals += 1
-                    if bad_evals >= cfg.u_patience:
-                        stopped = step
-                        break
-    model.load_state_dict(best_state)
-    curve.update({"best_val": best, "identity_val": identity, "stopped_at": stopped})
+                    st["bad_evals"] += 1
+                    if st["bad_evals"] >= cfg.u_patience:
+                        st["stopped"] = step
+            st["finished"] = step == cfg.u_max_steps or st["stopped"] == step
+            if checkpoint is not None and (st["finished"] or checkpoint.due()):
+                checkpoint.save(snapshot())
+            if st["finished"]:
+                break
+            check_interrupt("finetune U", step, checkpoint, snapshot)
+    model.load_state_dict(st["best_state"])
+    curve.update({"best_val": st["best"], "identity_val": identity, "stopped_at": st["stopped"]})
     return model.eval(), curve
 
 
@@ -231,7 +269,7 @@ def train_and_save(run: StageRun, ws: Workspace, cfg: FinetuneConfig, clean, bad
                                   "d_seconds": round(time.perf_counter() - t0, 2), "num_pairs": int(clean.shape[0])}
         curves: dict[str, Any] = {}
         return finish_with_u(run, ws, cfg, record, curves, device, gen)
-    d_model, d_curve = train_denoiser(cfg, clean[train_ids], bad[train_ids], device, gen)
+    d_model, d_curve = train_denoiser(cfg, clean[train_ids], bad[train_ids], device, gen, run.checkpointer("d"))
     d_seconds = time.perf_counter() - t0
     save_model(run.dir / "D", d_model, {"domain": cfg.domain, "levels": cfg.levels,
                                         "train_timesteps": cfg.train_timesteps})
@@ -248,7 +286,7 @@ def finish_with_u(run: StageRun, ws: Workspace, cfg: FinetuneConfig, record: dic
     if cfg.domain == "wavelet" and cfg.use_u:
         t1 = time.perf_counter()
         renders, refs, _ = load_hf_data(ws)
-        u_model, u_curve = train_hf_unet(cfg, renders, refs, device, gen)
+        u_model, u_curve = train_hf_unet(cfg, renders, refs, device, gen, run.checkpointer("u"))
         record.update({"u_seconds": round(time.perf_counter() - t1, 2), "u_best_val": u_curve["best_val"],
                        "u_identity_val": u_curve["identity_val"], "u_stopped_at": u_curve["stopped_at"]})
         save_model(run.dir / "U", u_model)

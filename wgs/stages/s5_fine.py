@@ -65,7 +65,7 @@ def run_fine(ws: Workspace, cfg: FineConfig, device: torch.device, seed: int, fo
         torch.manual_seed(seed)
         with ws.stage_run("fine", config, fp) as run:
             res = train_gaussians(splats, scene.train, cfg, device, extent=1.0, desc="fine", seed=seed,
-                                  has_masks=scene.has_masks, pseudo=pseudo)
+                                  has_masks=scene.has_masks, pseudo=pseudo, checkpoint=run.checkpointer("gf"))
             save_checkpoint(run.path(CKPT), res.splats, scene.norm, res.iterations)
             n = export_ply(run.path(PLY), to_world(res.splats, scene.norm))
             run.record.update({"num_gaussians": n, "iterations": res.iterations, "num_pseudo": len(frames),

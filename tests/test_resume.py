@@ -1,0 +1,201 @@
+"""Interruption: SIGKILL and Ctrl-C at a stage's middle, then a rerun; periodic state, --resume.
+
+The slow version (kill points spread over every stage, a trial killed every few seconds) is
+`make stress` (python -m wgs.stress kill-loop).
+"""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+import wgs.resume
+from wgs.config import FinetuneConfig
+from wgs.resume import Checkpointer, Interrupted
+from wgs.stages.s3_finetune import train_denoiser, train_hf_unet
+from wgs.stress import max_param_difference, outcome
+
+CFG = """
+[coarse]
+iterations = 150
+refine_start = 20
+refine_every = 20
+init_points = 800
+hull_resolution = 32
+[mask_data]
+iterations = 150
+refine_start = 20
+refine_every = 20
+init_points = 800
+hull_resolution = 32
+warmup = 50
+pair_every = 25
+[finetune]
+d_steps = 8
+d_channels = 8
+d_batch = 4
+u_max_steps = 8
+u_channels = 8
+u_eval_every = 4
+eval_steps = 2
+[repair]
+steps = 2
+[fine]
+iterations = 20
+refine_start = 5
+refine_every = 5
+"""
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+    from make_scene import make_scene
+
+    base = tmp_path_factory.mktemp("resume")
+    scene = make_scene(base / "scene", seed=2, size=64, n_train=4, n_test=5)
+    cfg = base / "wgs.toml"
+    cfg.write_text(CFG)
+    ref = base / "reference"
+    subprocess.run(wgs_cmd(ref, cfg, "all", str(scene)), check=True, capture_output=True)
+    return scene, cfg, ref
+
+
+def wgs_cmd(ws: Path, cfg: Path, *args: str, resume: bool = False, quiet: bool = True) -> list[str]:
+    return [sys.executable, "-m", "wgs", *(["-q"] if quiet else []), "--config", str(cfg), "--checkpoint-every", "0",
+            *(["--resume"] if resume else []), "-w", str(ws), *args]
+
+
+def start_and_signal_when(cmd: list[str], trigger: Path, sig: int, timeout: float = 120) -> subprocess.Popen:
+    """Start `cmd`; send `sig` as soon as `trigger` exists (a loop saved its state)."""
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    t0 = time.monotonic()
+    while not trigger.exists():
+        if proc.poll() is not None:
+            raise AssertionError(f"finished before {trigger.name} appeared: {proc.stderr.read()}")
+        if time.monotonic() - t0 > timeout:
+            proc.kill()
+            raise AssertionError(f"{trigger} never appeared")
+        time.sleep(0.02)
+    proc.send_signal(sig)
+    return proc
+
+
+def test_sigkill_in_mask_data_then_resume_gives_the_uninterrupted_result(setup, tmp_path):
+    scene, cfg, ref = setup
+    ws = tmp_path / "ws"
+    proc = start_and_signal_when(wgs_cmd(ws, cfg, "all", str(scene)), ws / ".resume/2_mask_data/gd.pt", signal.SIGKILL)
+    proc.wait()
+    assert proc.returncode == -signal.SIGKILL
+    assert (ws / "1_coarse/manifest.json").exists() and not (ws / "2_mask_data").exists()
+    saved = torch.load(ws / ".resume/2_mask_data/gd.pt", weights_only=True)
+    assert 0 < saved["it"] < 150
+    res = subprocess.run(wgs_cmd(ws, cfg, "all", str(scene), resume=True), capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    assert outcome(ws) == outcome(ref)
+    assert max_param_difference(ws, ref) == 0.0
+    assert not (ws / ".resume").exists()  # cleaned up once every stage finished
+
+
+def test_ctrl_c_saves_state_with_one_line_and_resume_continues(setup, tmp_path):
+    scene, cfg, ref = setup
+    ws = tmp_path / "ws"
+    subprocess.run(wgs_cmd(ws, cfg, "prepare", str(scene)), check=True, capture_output=True)
+    proc = start_and_signal_when(wgs_cmd(ws, cfg, "coarse"), ws / ".resume/1_coarse/gc.pt", signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("interrupted: coarse stopped after step"), err
+    assert "--resume" in lines[0] and "Traceback" not in err
+    stopped = torch.load(ws / ".resume/1_coarse/gc.pt", weights_only=True)["it"]
+    assert 0 < stopped < 150 and not (ws / "1_coarse").exists()
+    res = subprocess.run(wgs_cmd(ws, cfg, "coarse", resume=True), capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    a = torch.load(ws / "1_coarse/ckpt.pt", weights_only=True)["splats"]
+    b = torch.load(ref / "1_coarse/ckpt.pt", weights_only=True)["splats"]
+    assert all(torch.equal(a[k], b[k]) for k in b)
+
+
+def test_saved_state_of_other_settings_is_not_resumed(setup, tmp_path):
+    scene, cfg, _ = setup
+    ws = tmp_path / "ws"
+    subprocess.run(wgs_cmd(ws, cfg, "prepare", str(scene)), check=True, capture_output=True)
+    proc = start_and_signal_when(wgs_cmd(ws, cfg, "coarse"), ws / ".resume/1_coarse/gc.pt", signal.SIGKILL)
+    proc.wait()
+    res = subprocess.run(wgs_cmd(ws, cfg, "coarse", "--iterations", "40", resume=True, quiet=False),
+                         capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    assert "belongs to other inputs or settings: starting over" in res.stderr
+    assert torch.load(ws / "1_coarse/ckpt.pt", weights_only=True)["step"] == 40
+
+
+def test_without_resume_a_rerun_starts_over_and_says_so(setup, tmp_path):
+    scene, cfg, _ = setup
+    ws = tmp_path / "ws"
+    subprocess.run(wgs_cmd(ws, cfg, "prepare", str(scene)), check=True, capture_output=True)
+    proc = start_and_signal_when(wgs_cmd(ws, cfg, "coarse"), ws / ".resume/1_coarse/gc.pt", signal.SIGKILL)
+    proc.wait()
+    res = subprocess.run(wgs_cmd(ws, cfg, "coarse", quiet=False), capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    assert "starting over (add --resume" in res.stderr
+
+
+# ----------------------------------------------------------------------------- the finetune loops, in process
+def interrupt_at(monkeypatch, at: int) -> None:
+    """Make check_interrupt see a Ctrl-C once the loop reached step `at`."""
+    calls = {"n": 0}
+
+    def fake() -> bool:
+        calls["n"] += 1
+        return calls["n"] == at
+
+    monkeypatch.setattr(wgs.resume, "stop_requested", fake)
+
+
+@pytest.mark.parametrize("loop", ["D", "U"])
+def test_finetune_loops_resume_exactly(loop, tmp_path, monkeypatch):
+    cfg = FinetuneConfig(d_steps=12, d_channels=8, d_batch=2, d_crop=16, u_max_steps=12, u_channels=8,
+                         u_batch=2, u_crop=8, u_eval_every=3, u_patience=100)
+    g = torch.Generator().manual_seed(0)
+    a, b = torch.rand(6, 3, 32, 32, generator=g) * 2 - 1, torch.rand(6, 3, 32, 32, generator=g) * 2 - 1
+
+    def train(ck):
+        torch.manual_seed(0)
+        gen = torch.Generator().manual_seed(1)
+        if loop == "D":
+            return train_denoiser(cfg, a, b, torch.device("cpu"), gen, ck)
+        return train_hf_unet(cfg, a, b, torch.device("cpu"), gen, ck)
+
+    ref_model, ref_curve = train(None)
+    interrupt_at(monkeypatch, 5)
+    with pytest.raises(Interrupted, match="stopped after step 5"):
+        train(Checkpointer(tmp_path / "s.pt", every_s=1e9, resume=False))
+    monkeypatch.setattr(wgs.resume, "stop_requested", lambda: False)
+    model, curve = train(Checkpointer(tmp_path / "s.pt", every_s=1e9, resume=True))
+    assert curve == ref_curve
+    for (k, p), q in zip(model.state_dict().items(), ref_model.state_dict().values(), strict=True):
+        assert torch.equal(p, q), k
+
+
+def test_damaged_resume_state_is_a_clear_error(tmp_path):
+    path = tmp_path / "gc.pt"
+    path.write_bytes(b"PK\x03\x04 truncated")
+    with pytest.raises(wgs.errors.WgsError, match="cannot read the resume checkpoint"):
+        Checkpointer(path, 0, resume=True).load()
+
+
+def test_deferred_sigint_second_ctrl_c_stops_at_once():
+    with wgs.resume.deferred_sigint():
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.01)
+        assert wgs.resume.stop_requested()
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.01)
+    assert not wgs.resume.stop_requested()
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
