@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import subprocess
 import sys
 from pathlib import Path
 
@@ -103,3 +104,22 @@ def lego_or_skip() -> Path:
     if not (LEGO / "transforms_train.json").is_file():
         pytest.skip("shared lego data not present")
     return LEGO
+
+
+def run_cli(args, cwd: Path, timeout: float = 180) -> subprocess.CompletedProcess:
+    """Run `wgs` in a subprocess, as a shell would (main() maps errors to exit codes)."""
+    return subprocess.run([sys.executable, "-m", "wgs", *map(str, args)], capture_output=True, text=True, cwd=cwd,
+                          timeout=timeout)
+
+
+def expect_error(cwd: Path, args, *needles: str, code: int = 2) -> str:
+    """The command fails with `code` and exactly one `error:` line holding every needle, no traceback."""
+    proc = run_cli(args, cwd)
+    assert proc.returncode == code, (proc.returncode, proc.stderr)
+    err = proc.stderr.strip()
+    assert "Traceback" not in err, err
+    lines = [ln for ln in err.splitlines() if ln.startswith("error:")]
+    assert len(lines) == 1, err
+    for n in needles:
+        assert n in lines[0], (n, lines[0])
+    return lines[0]

@@ -1,32 +1,13 @@
 """Bad input: one line naming the file and the problem, exit status 2, no traceback."""
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import expect_error, run_cli
 
 from wgs.scene.images import write_png
-
-
-def run_cli(args, tmp_path):
-    """Run `wgs` in a subprocess, as a shell would (main() maps errors to exit codes)."""
-    return subprocess.run([sys.executable, "-m", "wgs", *args], capture_output=True, text=True, cwd=tmp_path,
-                          timeout=120)
-
-
-def expect_error(tmp_path, args, *needles):
-    proc = run_cli(args, tmp_path)
-    assert proc.returncode == 2, (proc.returncode, proc.stderr)
-    err = proc.stderr.strip()
-    assert "Traceback" not in err, err
-    lines = [ln for ln in err.splitlines() if ln.startswith("error:")]
-    assert len(lines) == 1, err
-    for n in needles:
-        assert n in lines[0], (n, lines[0])
-    return lines[0]
 
 
 def prep(scene, tmp_path, *extra):

@@ -6,6 +6,7 @@ Each stage reads and writes one workspace folder and is skipped when its inputs 
 
 from __future__ import annotations
 
+import errno
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -178,7 +179,9 @@ def main(argv: list[str] | None = None) -> None:
         if debug:
             raise
         where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
-        click.echo(f"error: {where}{exc.strerror or exc}", err=True)
+        hint = ("; free some space and rerun (finished stages are kept, `--resume` continues)"
+                if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG) else "")
+        click.echo(f"error: {where}{exc.strerror or exc}{hint}", err=True)
         sys.exit(1)
 
 

@@ -9,9 +9,10 @@ class WgsError(Exception):
     """A problem with the user's input or workspace (not a bug): printed as one line, exit 2."""
 
     def __init__(self, message: str, path: str | Path | None = None):
-        self.path = None if path is None else str(path)
-        self.message = message
-        super().__init__(f"{self.path}: {message}" if self.path else message)
+        # names that are not UTF-8 (surrogate escapes) are shown escaped, so the message always prints
+        self.path = None if path is None else str(path).encode("utf-8", "backslashreplace").decode()
+        self.message = message.encode("utf-8", "backslashreplace").decode()
+        super().__init__(f"{self.path}: {self.message}" if self.path else self.message)
 
 
 class InputError(WgsError):

@@ -12,6 +12,7 @@ so an interrupted or failed stage leaves the last good output untouched.
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import json
 import os
@@ -62,7 +63,12 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}{path.suffix}")
     try:
-        yield tmp
+        try:
+            yield tmp
+        except OSError as exc:  # a write error (disk full) names the file it was meant for
+            if exc.filename is None or str(exc.filename) == str(tmp):
+                raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from None
+            raise
         if not tmp.exists():
             raise WgsError("nothing was written", path)
         with open(tmp, "rb") as fh:  # data reaches the disk before the rename makes it visible
@@ -203,7 +209,10 @@ class Workspace:
     @contextlib.contextmanager
     def lock(self) -> Iterator[None]:
         """Exclusive write access; a lock left by a dead process on this host is taken over."""
-        self.root.mkdir(parents=True, exist_ok=True)
+        try:
+            self.root.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise WgsError(f"cannot create the workspace folder ({exc.strerror})", self.root) from None
         path = self.root / LOCK
         me = {"pid": os.getpid(), "host": socket.gethostname(), "started": time.strftime("%Y-%m-%d %H:%M:%S")}
         for _ in range(3):
@@ -218,6 +227,10 @@ class Workspace:
                 with contextlib.suppress(FileNotFoundError):
                     path.unlink()  # stale lock from a dead process
                 continue
+            except OSError as exc:
+                if exc.errno in (errno.EROFS, errno.EACCES, errno.EPERM):
+                    raise WgsError(f"the workspace is not writable ({exc.strerror})", self.root) from None
+                raise
             with os.fdopen(fd, "w") as fh:
                 json.dump(me, fh)
             break

@@ -66,7 +66,8 @@ def _hull_surface(frames, lo, hi, resolution, near, max_points, generator):
     occ, colours, grid = _carve(frames, lo, hi, resolution, near)
     if not occ.any():
         raise InputError("the visual hull of the training masks is empty: the training views share no object "
-                         "region. Check that masks are white on the object and that poses are right")
+                         "region. Check that the masks are white on the object, that every training view sees it, "
+                         "and that the poses are right (camera-to-world vs world-to-camera, OpenGL vs OpenCV axes)")
     pad = torch.nn.functional.pad(occ[None, None].float(), (1, 1, 1, 1, 1, 1))
     interior = -torch.nn.functional.max_pool3d(-pad, 3, stride=1)[0, 0] > 0.5
     surface = (occ & ~interior).reshape(-1)

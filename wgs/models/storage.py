@@ -32,12 +32,16 @@ def load_model(folder: Path, device: torch.device | str = "cpu") -> tuple[torch.
         raise InputError("model config not found", cfg_path) from None
     except json.JSONDecodeError as exc:
         raise InputError(f"not valid JSON ({exc})", cfg_path) from None
-    name = cfg.get("class")
+    name = cfg.get("class") if isinstance(cfg, dict) else None
     if name not in CLASSES:
         raise InputError(f"unknown model class {name!r}", cfg_path)
     cls, cfg_cls = CLASSES[name]
     fields = {k: cfg[k] for k in cfg_cls.__dataclass_fields__ if k in cfg}
-    model = cls(cfg_cls(**fields))
+    try:
+        model = cls(cfg_cls(**fields))
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise InputError(f"model config does not describe a {name} ({str(exc).splitlines()[0][:160]})",
+                         cfg_path) from None
     try:
         state = load_file(str(w_path))
         model.load_state_dict(state)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from ..errors import InputError
 from .colmap import find_model_dir, read_colmap_scene
 from .idr import read_idr_scene
@@ -45,4 +47,18 @@ def read_scene(root: str | Path) -> RawScene:
     scene = reader(root)
     if not scene.views:
         raise InputError(f"{fmt} scene has no usable images", root)
+    check_cameras(scene)
     return scene
+
+
+def check_cameras(scene: RawScene) -> None:
+    """Every format's cameras: finite, positive focal lengths, within 1e9 units (the rotation is checked
+    later, with its own message)."""
+    source = scene.metadata_files[0] if scene.metadata_files else scene.root
+    for v in scene.views:
+        K = v.K
+        ok = (np.isfinite(v.w2c).all() and np.isfinite(K).all() and K[0, 0] > 0 and K[1, 1] > 0
+              and np.abs(v.w2c).max() < 1e9)
+        if not ok:
+            raise InputError(f"camera of {v.name} is not finite, has a focal length <= 0 or lies over 1e9 units "
+                             "away", source)

@@ -44,9 +44,14 @@ def read_idr_scene(root: Path) -> RawScene:
     if image_dir is None:
         raise InputError("IDR scene has no image/ or images/ folder", root)
     try:
-        cams = dict(np.load(cam_file, allow_pickle=False))
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
-        raise InputError(f"cannot read camera file ({exc})", cam_file) from None
+        with open(cam_file, "rb") as fh:  # our own handle: numpy leaks its own when the zip is damaged
+            z = np.load(fh, allow_pickle=False)
+            if not isinstance(z, np.lib.npyio.NpzFile):
+                raise InputError("not an .npz archive of named matrices (a single array?)", cam_file)
+            with z:
+                cams = {k: z[k] for k in z.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, KeyError, RuntimeError) as exc:
+        raise InputError(f"cannot read camera file ({str(exc).splitlines()[0][:160]})", cam_file) from None
     images = _images(image_dir)
     mask_dir = root / "mask" if (root / "mask").is_dir() else None
     masks = _images(mask_dir) if mask_dir else []
@@ -57,13 +62,16 @@ def read_idr_scene(root: Path) -> RawScene:
         key = f"world_mat_{i}"
         if key not in cams:
             raise InputError(f"no '{key}' for image {img.name}", cam_file)
-        P = np.asarray(cams[key], dtype=np.float64)
-        if P.shape not in ((4, 4), (3, 4)) or not np.isfinite(P).all():
+        P = cams[key]
+        if P.dtype.kind not in "iuf" or P.shape not in ((4, 4), (3, 4)) or not np.isfinite(P).all():
             raise InputError(f"'{key}' must be a finite 4x4 matrix", cam_file)
         try:
-            K, w2c = decompose_projection(P[:3, :4])
+            with np.errstate(all="ignore"):
+                K, w2c = decompose_projection(P[:3, :4].astype(np.float64))
         except (ValueError, np.linalg.LinAlgError):
             raise InputError(f"'{key}' is singular", cam_file) from None
+        if not (np.isfinite(K).all() and np.isfinite(w2c).all() and K[0, 0] > 0 and K[1, 1] > 0):
+            raise InputError(f"'{key}' is not a camera projection K [R | t]", cam_file)
         w, h = image_size(img)
         views.append(View(img.name, img, K, w2c, w, h, masks[i] if masks else None))
     return RawScene(root, "idr", views, metadata_files=[cam_file])

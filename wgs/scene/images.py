@@ -13,9 +13,19 @@ from ..workspace import atomic_path
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff", ".bmp", ".webp")
 
 
+def oiio_path(path: Path) -> str:
+    """The path as OpenImageIO takes it (UTF-8 text); a name in another encoding is refused clearly."""
+    text = str(path)
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        raise InputError("file name is not valid UTF-8: rename the file", path) from None
+    return text
+
+
 def image_size(path: Path) -> tuple[int, int]:
     """(width, height) from the header, without decoding pixels."""
-    inp = oiio.ImageInput.open(str(path))
+    inp = oiio.ImageInput.open(oiio_path(path))
     if inp is None:
         raise InputError(f"cannot read image ({_oiio_error()})", path)
     spec = inp.spec()
@@ -27,7 +37,7 @@ def read_image(path: Path, max_pixels: int | None = None) -> np.ndarray:
     """Decode an image to float32 [H, W, C] in [0, 1] (C = 1, 3 or 4; 8/16-bit or float files)."""
     if not path.is_file():
         raise InputError("image file not found", path)
-    inp = oiio.ImageInput.open(str(path))
+    inp = oiio.ImageInput.open(oiio_path(path))
     if inp is None:
         raise InputError(f"cannot read image ({_oiio_error()})", path)
     try:

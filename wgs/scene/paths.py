@@ -13,12 +13,15 @@ def safe_join(root: Path, rel: str, source: Path) -> Path:
 
     `source` is the file that named the path (for the error message).
     """
-    if not isinstance(rel, str) or not rel:
-        raise InputError(f"invalid file path {rel!r}", source)
+    if not isinstance(rel, str) or not rel or "\0" in rel or len(rel) > 1024:
+        raise InputError(f"invalid file path {str(rel)[:80]!r}", source)
     if Path(rel).is_absolute():
         raise InputError(f"file path {rel!r} is absolute: refusing to read outside the scene folder", source)
     root_r = root.resolve()
-    target = (root / rel).resolve()
+    try:
+        target = (root / rel).resolve()
+    except (OSError, RuntimeError) as exc:  # a symlink loop, a name too long
+        raise InputError(f"file path {rel!r} cannot be resolved ({exc})", source) from None
     if not target.is_relative_to(root_r):
         raise InputError(f"file path {rel!r} points outside the scene folder: refused", source)
     return root / rel

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..config import PrepareConfig, as_dict
+from ..errors import InputError
 from ..progress import log
 from ..scene.prepare import load_scene_for_prepare, prepare, scene_inputs_digest
 from ..workspace import Workspace
@@ -19,6 +20,10 @@ def run_prepare(ws: Workspace, scene_dir: Path, cfg: PrepareConfig, force: bool 
                       force)
         if fp is None:
             return False
+        held = ((ws.manifest("scene") or {}).get("summary") or {}).get("source")
+        if held is not None and Path(held) != scene_dir.resolve() and not force:
+            raise InputError(f"this workspace holds another scene ({held}): use a new -w folder, or add --force "
+                             "to replace it (every stage is then recomputed)", ws.root)
         for note in scene.notes:
             log(f"  note: {note}")
         log(f"prepare: {scene.format} scene, {len(scene.train)} training + {len(scene.test)} test views")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 
 from ..config import CoarseConfig, TrainConfig, as_dict
+from ..errors import InputError
 from ..gaussians.init import knn_mean_distance, random_init, visual_hull
 from ..gaussians.splats import Splats, create_splats, export_ply, save_checkpoint, to_world
 from ..gaussians.trainer import render_frame, train_gaussians
@@ -24,7 +25,10 @@ def initial_splats(scene: PreparedScene, cfg: TrainConfig, seed: int) -> Splats:
     """Visual hull of the masks when the scene has them, else random points in the object region."""
     gen = torch.Generator().manual_seed(seed)
     if scene.has_masks:
-        pts, cols = visual_hull(scene.train, cfg.hull_resolution, 1.0, cfg.init_points, generator=gen)
+        try:
+            pts, cols = visual_hull(scene.train, cfg.hull_resolution, 1.0, cfg.init_points, generator=gen)
+        except InputError as exc:  # name the scene the user gave, whose masks and poses are at fault
+            raise InputError(exc.message, scene.info.get("source")) from None
     else:
         log("coarse: no masks -> no visual hull, no mask loss, no random background (random init)")
         pts, cols = random_init(cfg.init_points, generator=gen)

@@ -13,6 +13,7 @@ import numpy as np
 import OpenImageIO as oiio
 
 from ..errors import InputError
+from ..scene.images import oiio_path
 from ..workspace import atomic_path
 
 HALF_MAX = 65504.0
@@ -63,7 +64,7 @@ def write_subbands(path: str | Path, bands: dict[str, np.ndarray], half: bool = 
 def read_subbands(path: str | Path) -> dict[str, np.ndarray]:
     """Read an EXR written by `write_subbands`: {band: [H, W, C] float32} in R, G, B order."""
     path = Path(path)
-    inp = oiio.ImageInput.open(str(path))
+    inp = oiio.ImageInput.open(oiio_path(path))
     if inp is None:
         raise InputError(f"cannot read EXR ({oiio.geterror().strip() or 'unknown error'})", path)
     try:
