@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import shutil
 import subprocess
 import sys
@@ -20,6 +21,7 @@ from make_scene import make_scene  # noqa: E402
 from wgs.scene.convention import GL_TO_CV, invert_rigid  # noqa: E402
 from wgs.scene.formats import read_scene  # noqa: E402
 from wgs.scene.images import read_image, write_png  # noqa: E402
+from wgs.scene.orbit import look_at  # noqa: E402
 
 
 @pytest.fixture(scope="session")
@@ -123,3 +125,14 @@ def expect_error(cwd: Path, args, *needles: str, code: int = 2) -> str:
     for n in needles:
         assert n in lines[0], (n, lines[0])
     return lines[0]
+
+
+def ring_w2c(n=4, radius=1.0, height=0.3, jitter=0.0, seed=0):
+    """World-to-camera matrices of n cameras on a ring looking at the origin."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(n):
+        a = 2 * math.pi * i / n + jitter * rng.normal()
+        eye = np.array([radius * math.cos(a), radius * math.sin(a), height * radius])
+        out.append(look_at(eye, np.zeros(3), np.array([0.0, 0.0, 1.0])))
+    return out

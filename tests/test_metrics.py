@@ -1,6 +1,5 @@
 """Metrics: 3DGS-style SSIM against a float64 reference, PSNR edge cases, LPIPS from local weights."""
 
-import math
 
 import numpy as np
 import pytest
@@ -8,7 +7,7 @@ import torch
 import torch.nn.functional as F
 
 from wgs.lpips import LPIPS, LpipsUnavailable
-from wgs.metrics import psnr, ssim
+from wgs.metrics import ssim
 
 
 def ssim_reference(a: np.ndarray, b: np.ndarray) -> float:
@@ -38,16 +37,6 @@ def test_ssim_matches_float64_reference():
     assert abs(ssim(torch.from_numpy(a).float(), torch.from_numpy(b).float()) - ssim_reference(a, b)) < 1e-6
 
 
-def test_ssim_and_psnr_defined_values():
-    x = torch.rand(16, 16, 3)
-    assert ssim(x, x) == pytest.approx(1.0, abs=1e-12)
-    c = torch.full((16, 16, 3), 0.5)
-    assert ssim(c, c) == pytest.approx(1.0)
-    assert math.isfinite(ssim(c, torch.zeros_like(c)))
-    assert psnr(x, x) == math.inf
-    assert psnr(torch.zeros(4, 4), torch.ones(4, 4)) == pytest.approx(0.0)
-    with pytest.raises(ValueError):
-        ssim(torch.zeros(4, 4), torch.zeros(4, 4))
 
 
 def write_random_lpips(folder, net="alex", seed=0):
