@@ -38,7 +38,7 @@ ablation: $(VENV)/.installed
 
 # Slow robustness checks: SIGKILL at points spread over every stage + rerun; long loader fuzzing.
 stress: $(VENV)/.installed
-	$(BIN)/python -m wgs.stress kill-loop --kills 14
+	$(BIN)/python -m wgs.stress kill-loop
 	HYPOTHESIS_PROFILE=stress $(BIN)/python -m pytest -q tests/test_fuzz_loaders.py
 
 lint: $(VENV)/.installed

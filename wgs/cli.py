@@ -43,6 +43,18 @@ class Ctx:
     file_cfg: dict[str, Any] = field(default_factory=dict)
     resume: bool = False
     checkpoint_every: float = 60.0
+    config_path: Path | None = None
+
+    def child_args(self) -> list[str]:
+        """The global options again, for a `wgs` child process (wgs batch)."""
+        out = ["--seed", str(self.seed), "--checkpoint-every", str(self.checkpoint_every)]
+        if self.device != "auto":
+            out += ["--device", self.device]
+        if self.config_path is not None:
+            out += ["--config", str(self.config_path.resolve())]
+        if self.resume:
+            out.append("--resume")
+        return out
 
     def ws(self) -> Workspace:
         if self.workspace is None:
@@ -77,7 +89,7 @@ def cli(ctx: click.Context, workspace, device, seed, quiet, config_file, debug, 
     file_cfg = load_config_file(config_file) if config_file else {"global": {}}
     g = file_cfg["global"]
     ctx.obj = Ctx(workspace, device or g.get("device", "auto"), seed if seed is not None else g.get("seed", 0),
-                  debug, file_cfg, resume, checkpoint_every)
+                  debug, file_cfg, resume, checkpoint_every, config_file)
 
 
 def workspace_option(f):

@@ -1,13 +1,13 @@
 """Slow robustness checks behind `make stress`.
 
-    python -m wgs.stress kill-loop [--kills 14] [--out DIR]
+    python -m wgs.stress kill-loop [--fractions 0.2,0.6,0.95] [--out DIR]
 
 kill-loop: runs `wgs all` on a generated scene once without interruption (the reference), then
-once per kill point: starts it in a fresh workspace, SIGKILLs it at a moment spread evenly over the
-reference run's duration (so every stage is hit in proportion to its time), reruns it (alternately
-with --resume and without) until it finishes, and compares the results and the final model with the
-reference. A last trial kills every few seconds until the run gets through. Prints one line per
-trial and writes kill_loop.json.
+once per kill point: starts it in a fresh workspace, SIGKILLs it when a given stage has run for a
+given fraction of its reference duration (every stage, several fractions, whatever the machine's
+speed), reruns it (alternately with --resume and without) until it finishes, and compares the
+results and the final model with the reference. A last trial kills every few seconds until the run
+gets through. Prints one line per trial and writes kill_loop.json.
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -66,17 +67,38 @@ def wgs_command(ws: Path, scene: Path, cfg: Path, resume: bool, checkpoint_every
             *(["--resume"] if resume else []), "-w", str(ws), "all", str(scene)]
 
 
-def run_until_killed(cmd: list[str], after_s: float) -> tuple[int | None, float]:
-    """Start `cmd`, SIGKILL it after `after_s` seconds unless it ended; (exit status or None, wall s)."""
-    t0 = time.perf_counter()
+def run_until_killed(cmd: list[str], ws: Path, stage: str | None, delay_s: float, timeout_s: float = 1800
+                     ) -> int | None:
+    """Start `cmd`; once `stage` has started (its upstream stage finished; None: never kill) wait
+    `delay_s` more and SIGKILL it. Returns the exit status, or None when it was killed."""
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    t0 = time.monotonic()
     try:
-        rc = proc.wait(timeout=after_s)
-        return rc, time.perf_counter() - t0
-    except subprocess.TimeoutExpired:
-        proc.send_signal(signal.SIGKILL)
-        proc.wait()
-        return None, time.perf_counter() - t0
+        if stage is not None:
+            while not stage_started(ws, stage):
+                if proc.poll() is not None or time.monotonic() - t0 > timeout_s:
+                    break
+                time.sleep(0.01)
+            else:
+                time.sleep(delay_s)
+                if proc.poll() is None:
+                    proc.send_signal(signal.SIGKILL)
+                    proc.wait()
+                    return None
+        return proc.wait(timeout=timeout_s)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def stage_started(ws: Path, stage: str) -> bool:
+    """The stage before `stage` finished (for the first stage: the workspace lock exists)."""
+    order = list(STAGE_DIRS)
+    i = order.index(stage)
+    if i == 0:
+        return (ws / ".wgs.lock").exists()
+    return Workspace(ws).manifest(order[i - 1]) is not None
 
 
 def running_stage(ws: Path) -> str:
@@ -104,7 +126,7 @@ def max_param_difference(a: Path, b: Path) -> float:
     return max(float((ca[k] - cb[k]).abs().max()) for k in ca)
 
 
-def kill_loop(out: Path, kills: int, checkpoint_every: float, hammer_s: float) -> dict[str, Any]:
+def kill_loop(out: Path, fractions: list[float], checkpoint_every: float, hammer_s: float) -> dict[str, Any]:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
     from make_scene import make_scene
 
@@ -117,33 +139,44 @@ def kill_loop(out: Path, kills: int, checkpoint_every: float, hammer_s: float) -
     subprocess.run(wgs_command(ref, scene, cfg, False, checkpoint_every), check=True, stdout=subprocess.DEVNULL)
     total = time.perf_counter() - t0
     expected = outcome(ref)
-    print(f"reference: {total:.1f} s, PSNR {expected['psnr']:.4f}", flush=True)
+    stage_s = {st: Workspace(ref).manifest(st)["wall_time_s"] for st in STAGE_DIRS}
+    print(f"reference: {total:.1f} s, PSNR {expected['psnr']:.4f}; stage wall times (s): "
+          + ", ".join(f"{k} {v:.1f}" for k, v in stage_s.items()), flush=True)
+    # every stage, killed at fractions of its reference duration after it started; then a hammer trial
+    plan = [(st, f) for st in STAGE_DIRS for f in fractions] + [("hammer", hammer_s)]
     trials = []
-    for k in range(kills + 1):
+    for k, (target, frac) in enumerate(plan):
         ws = out / f"trial{k:02d}"
-        hammer = k == kills
-        at = hammer_s if hammer else total * (k + 0.5) / kills
-        stages, runs = [], 0
+        hammer = target == "hammer"
+        resume = hammer or k % 2 == 0
+        killed: list[str] = []
+        runs = 0
         while True:
             runs += 1
-            resume = hammer or k % 2 == 0
-            kill = hammer and runs < 40 or runs == 1  # the hammer gives up after 40 kills: then a clean finish
-            rc, _ = run_until_killed(wgs_command(ws, scene, cfg, resume and runs > 1, checkpoint_every),
-                                     at if kill else 3600)
+            cmd = wgs_command(ws, scene, cfg, resume and runs > 1, checkpoint_every)
+            if hammer and runs < 40:  # killed every hammer_s seconds after start; a clean finish after 40 kills
+                stage, delay = list(STAGE_DIRS)[0], frac
+            elif runs == 1:
+                stage, delay = target, frac * stage_s[target]
+            else:
+                stage, delay = None, 0.0
+            rc = run_until_killed(cmd, ws, stage, delay)
             if rc is None:
-                stages.append(running_stage(ws))
+                killed.append(running_stage(ws))
                 continue
             if rc != 0:
                 raise SystemExit(f"trial {k}: `wgs all` failed with exit status {rc} after a kill")
             break
         got = outcome(ws)
         diff = max_param_difference(ref, ws)
-        trial = {"trial": k, "kill_after_s": round(at, 2), "killed_in": stages, "runs": runs,
-                 "resume": hammer or k % 2 == 0, "same_metrics": got == expected, "max_param_diff": diff}
+        trial = {"trial": k, "target": target, "kill_at": round(frac, 2), "killed_in": killed, "runs": runs,
+                 "resume": resume, "same_metrics": got == expected, "max_param_diff": diff}
         trials.append(trial)
         print(json.dumps(trial), flush=True)
-    summary = {"reference_seconds": round(total, 2), "kill_points": sum(len(t["killed_in"]) for t in trials),
-               "trials": trials, "all_identical": all(t["same_metrics"] and t["max_param_diff"] == 0 for t in trials)}
+        shutil.rmtree(ws, ignore_errors=True)
+    summary = {"reference_seconds": round(total, 2), "stage_seconds": stage_s,
+               "kill_points": sum(len(t["killed_in"]) for t in trials), "trials": trials,
+               "all_identical": all(t["same_metrics"] and t["max_param_diff"] == 0 for t in trials)}
     (out / "kill_loop.json").write_text(json.dumps(summary, indent=2))
     return summary
 
@@ -152,14 +185,16 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m wgs.stress")
     sub = parser.add_subparsers(dest="what", required=True)
     k = sub.add_parser("kill-loop", help="SIGKILL `wgs all` at points spread over every stage, rerun, compare")
-    k.add_argument("--kills", type=int, default=14)
+    k.add_argument("--fractions", default="0.2,0.6,0.95",
+                   help="kill points per stage, as fractions of its reference duration")
     k.add_argument("--checkpoint-every", type=float, default=0.5)
     k.add_argument("--hammer-s", type=float, default=6.0, help="kill interval of the last trial")
     k.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)
     os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(".numba_cache").resolve()))
     with tempfile.TemporaryDirectory() as tmp:
-        summary = kill_loop(args.out or Path(tmp), args.kills, args.checkpoint_every, args.hammer_s)
+        fractions = [float(x) for x in args.fractions.split(",")]
+        summary = kill_loop(args.out or Path(tmp), fractions, args.checkpoint_every, args.hammer_s)
     by_stage: dict[str, int] = {}
     for t in summary["trials"]:
         for s in t["killed_in"]:

@@ -128,6 +128,67 @@ def register(cli, stage_common, workspace_option) -> None:
         print_summary(obj.ws(), outcomes)
 
     @cli.command()
+    @click.argument("scenes")
+    @click.option("-o", "--output", "root", type=click.Path(path_type=Path), required=True,
+                  help="Root folder: ROOT/<scene name>/ workspaces, ROOT/_batch/ logs and summary.")
+    @click.option("--executor", type=click.Choice(["local", "slurm"]), default="local", show_default=True,
+                  help="local: a process pool; slurm: a job array through submitit (wgs[slurm]).")
+    @click.option("-j", "--jobs", type=click.IntRange(min=1), default=None,
+                  help="local: scenes at a time (default: one per visible GPU, else 1).")
+    @click.option("--rank", type=click.IntRange(min=0), default=None,
+                  help="Run only scenes rank, rank+n, ... (default: $SLURM_ARRAY_TASK_ID, else all).")
+    @click.option("--world-size", type=click.IntRange(min=1), default=None,
+                  help="Number of shards n (default: $SLURM_ARRAY_TASK_COUNT, else 1).")
+    @click.option("--preset", type=click.Choice(["fast", "default", "paper"]), default=None,
+                  help="Budget preset for every scene (a line's own --preset wins).")
+    @click.option("--force", is_flag=True, help="Run finished scenes again (their fresh stages are still skipped).")
+    @click.option("--summary-only", is_flag=True, help="Only aggregate what the workspaces hold.")
+    @click.option("--partition", default=None, help="slurm: partition.")
+    @click.option("--time-min", type=click.IntRange(min=1), default=120, show_default=True,
+                  help="slurm: time limit per scene (minutes).")
+    @click.option("--gpus", type=click.IntRange(min=0), default=0, show_default=True, help="slurm: GPUs per scene.")
+    @click.option("--cpus", type=click.IntRange(min=1), default=4, show_default=True, help="slurm: CPUs per scene.")
+    @click.option("--mem-gb", type=click.IntRange(min=1), default=None, help="slurm: memory per scene (GB).")
+    @click.option("--array-parallelism", type=click.IntRange(min=1), default=32, show_default=True,
+                  help="slurm: array elements running at once.")
+    @click.option("--cluster", type=click.Choice(["auto", "slurm", "local", "debug"]), default="auto",
+                  show_default=True, help="slurm: submitit's executor (local/debug run without a cluster).")
+    @click.pass_obj
+    def batch(obj, scenes, root, executor, jobs, rank, world_size, preset, force, summary_only, partition, time_min,
+              gpus, cpus, mem_gb, array_parallelism, cluster):
+        """Run `wgs all` on many scenes. SCENES: a text file (a scene folder per line, optional `wgs all`
+        options after it) or a quoted glob of scene folders. Exit status 1 when a scene failed."""
+        import sys
+
+        from .. import batch as b
+
+        tasks = b.read_scene_list(scenes, cli.commands["all"])
+        if preset:
+            tasks = [t if "--preset" in t.options else b.SceneTask(t.name, t.scene, (*t.options, "--preset", preset))
+                     for t in tasks]
+        root = root.resolve()
+        ran: dict = {}
+        if not summary_only:
+            r, n = b.shard_from_env(rank, world_size)
+            mine = b.shard(tasks, r, n)
+            if n > 1:
+                log(f"batch: shard {r} of {n}: {len(mine)} of {len(tasks)} scene(s)")
+            args = obj.child_args()
+            if executor == "local":
+                out = b.run_local(mine, root, args, jobs, obj.device != "cpu", rerun=force)
+            else:
+                opts = b.SlurmOptions(None if cluster == "auto" else cluster, partition, time_min, gpus, cpus,
+                                      mem_gb, array_parallelism)
+                out = b.run_submitit(mine, root, args, opts, rerun=force)
+            ran = {o["name"]: o for o in out}
+        summary = b.summarize(root, tasks, ran)
+        b.write_summary(root, summary)
+        b.print_summary(summary)
+        log(f"batch: summary in {root / b.BATCH_DIR / 'summary.json'} and summary.csv")
+        if any(o["status"] == "failed" for o in ran.values()):
+            sys.exit(1)
+
+    @cli.command()
     @click.argument("scene", type=click.Path(path_type=Path))
     @click.option("--rows", default="paper", show_default=True,
                   help="paper | all | comma-separated names (loo-rgb, offline-rgb, orm-rgb, orm-wavelet, "

@@ -1,0 +1,321 @@
+"""`wgs batch`: many scenes, each `wgs all` in its own process and workspace `ROOT/<name>/`.
+
+Executors: a local pool (`--jobs N` on the CPU, one job per visible GPU), submitit (Slurm job
+arrays; its local/debug executors run without a cluster), and a static shard `--rank i
+--world-size n` of the scene list for any other scheduler. The summary aggregates every scene's
+`6_eval/results.json` into `ROOT/_batch/summary.{json,csv}`.
+"""
+
+from __future__ import annotations
+
+import csv
+import glob
+import io
+import json
+import os
+import queue
+import shlex
+import statistics
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import click
+
+from .errors import InputError
+from .progress import log
+from .workspace import STAGE_DIRS, atomic_write_bytes, atomic_write_json
+
+BATCH_DIR = "_batch"
+DONE = "batch_done.json"
+ERROR = "error.txt"
+METRICS = ("psnr", "ssim", "lpips")
+
+
+@dataclass(frozen=True)
+class SceneTask:
+    """One line of the scene list: a scene folder and extra `wgs all` options."""
+
+    name: str
+    scene: str  # absolute path
+    options: tuple[str, ...] = ()
+
+
+# ----------------------------------------------------------------------------- the scene list
+def read_scene_list(spec: str, all_command: click.Command) -> list[SceneTask]:
+    """SCENES: a text file (one scene folder per line, then optional `wgs all` options; `#` starts a
+    comment; paths relative to the file) or a glob of scene folders."""
+    path = Path(spec)
+    tasks: list[SceneTask] = []
+    if path.is_file():
+        try:
+            lines = path.read_text(encoding="utf-8").splitlines()
+        except UnicodeDecodeError:
+            raise InputError("the scene list is not UTF-8 text", path) from None
+        for n, line in enumerate(lines, 1):
+            try:
+                tokens = shlex.split(line, comments=True)
+            except ValueError as exc:
+                raise InputError(f"line {n}: {exc}", path) from None
+            if not tokens:
+                continue
+            scene = (path.parent / tokens[0]).resolve()
+            tasks.append(make_task(scene, tokens[1:], all_command, f"line {n}: ", path))
+    else:
+        matches = sorted(p for p in glob.glob(spec) if Path(p).is_dir())
+        if not matches:
+            raise InputError("no scene list file of that name and no scene folder matches it as a glob", spec)
+        tasks = [make_task(Path(m).resolve(), [], all_command, "", spec) for m in matches]
+    if not tasks:
+        raise InputError("the scene list names no scene", spec)
+    seen: dict[str, str] = {}
+    for t in tasks:
+        if t.name in seen:
+            raise InputError(f"two scenes are named {t.name!r} ({seen[t.name]} and {t.scene}): their workspaces "
+                             "would collide; rename one folder or list it under another parent", spec)
+        seen[t.name] = t.scene
+    return tasks
+
+
+def make_task(scene: Path, options: list[str], all_command: click.Command, where: str, source: str | Path
+              ) -> SceneTask:
+    if not scene.is_dir():
+        raise InputError(f"{where}scene folder not found: {scene}", source)
+    if any(o in ("-w", "--workspace") or o.startswith("--workspace=") for o in options):
+        raise InputError(f"{where}-w is set by wgs batch (ROOT/<scene name>)", source)
+    try:  # the options must parse as `wgs all` options: a typo fails here, not an hour later
+        all_command.make_context("all", [str(scene), *options], resilient_parsing=False)
+    except click.ClickException as exc:
+        raise InputError(f"{where}{exc.format_message()}", source) from None
+    return SceneTask(scene.name, str(scene), tuple(options))
+
+
+def shard(tasks: list[SceneTask], rank: int, world_size: int) -> list[SceneTask]:
+    """Scenes rank, rank + n, rank + 2n, ... of the list: the ranks 0..n-1 cover each scene once."""
+    return tasks[rank::world_size]
+
+
+def shard_from_env(rank: int | None, world_size: int | None) -> tuple[int, int]:
+    """--rank/--world-size, else Slurm array variables (SLURM_ARRAY_TASK_ID - SLURM_ARRAY_TASK_MIN of
+    SLURM_ARRAY_TASK_COUNT), else the whole list."""
+    env = os.environ
+    if rank is None and "SLURM_ARRAY_TASK_ID" in env and "SLURM_ARRAY_TASK_COUNT" in env:
+        rank = int(env["SLURM_ARRAY_TASK_ID"]) - int(env.get("SLURM_ARRAY_TASK_MIN", "0"))
+        world_size = int(env["SLURM_ARRAY_TASK_COUNT"])
+    rank = 0 if rank is None else rank
+    world_size = 1 if world_size is None else world_size
+    if world_size < 1 or not 0 <= rank < world_size:
+        raise InputError(f"rank {rank} is not in 0..{world_size - 1} (world size {world_size})")
+    return rank, world_size
+
+
+# ----------------------------------------------------------------------------- one scene
+def run_scene(task: SceneTask, root: str, global_args: list[str], env: dict[str, str] | None = None,
+              rerun: bool = False) -> dict[str, Any]:
+    """`wgs all` on one scene in a child process (a crash or a GPU fault stays there). Writes
+    ROOT/<name>/error.txt on failure, ROOT/<name>/batch_done.json on success; a scene finished with
+    the same arguments is skipped unless `rerun`."""
+    ws = Path(root) / task.name
+    args = [*global_args, "-w", str(ws), "all", task.scene, *task.options]
+    key = {"args": [*global_args, "all", task.scene, *task.options]}
+    done = ws / DONE
+    if (not rerun and done.is_file() and _read(done) == key
+            and (ws / STAGE_DIRS["eval"] / "results.json").is_file()):
+        return {"name": task.name, "status": "skipped", "seconds": 0.0, "error": None}
+    logs = Path(root) / BATCH_DIR / "logs"
+    logs.mkdir(parents=True, exist_ok=True)
+    ws.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    with open(logs / f"{task.name}.log", "w", encoding="utf-8") as fh:
+        proc = subprocess.run([sys.executable, "-m", "wgs", *args], stdout=fh, stderr=subprocess.STDOUT,
+                              env={**os.environ, **(env or {})})
+    seconds = time.perf_counter() - t0
+    if proc.returncode == 0:
+        (ws / ERROR).unlink(missing_ok=True)
+        atomic_write_json(done, key)
+        return {"name": task.name, "status": "done", "seconds": round(seconds, 2), "error": None}
+    message = failure_message(logs / f"{task.name}.log", proc.returncode)
+    done.unlink(missing_ok=True)
+    atomic_write_bytes(ws / ERROR, (f"{message}\nexit status {proc.returncode}; command: wgs "
+                                    f"{shlex.join(args)}\nfull log: {logs / (task.name + '.log')}\n").encode())
+    return {"name": task.name, "status": "failed", "seconds": round(seconds, 2), "error": message}
+
+
+def failure_message(log_file: Path, returncode: int) -> str:
+    """The child's `error:` line, else the last line of its output, else its exit status."""
+    lines = [ln.strip() for ln in log_file.read_text(encoding="utf-8", errors="replace").splitlines() if ln.strip()]
+    errors = [ln for ln in lines if ln.startswith(("error:", "interrupted:"))]
+    if errors:
+        return errors[-1]
+    if returncode < 0:
+        return f"killed by signal {-returncode}"
+    return lines[-1] if lines else f"exit status {returncode}"
+
+
+def _read(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+
+
+# ----------------------------------------------------------------------------- executors
+def visible_gpus() -> list[str]:
+    """GPU ids a child may be pinned to: CUDA_VISIBLE_DEVICES when set, else what torch sees."""
+    env = os.environ.get("CUDA_VISIBLE_DEVICES")
+    if env is not None:
+        return [g for g in env.split(",") if g.strip() and g.strip() != "-1"]
+    try:
+        import torch
+
+        return [str(i) for i in range(torch.cuda.device_count())]
+    except Exception:  # noqa: BLE001 - no torch CUDA runtime: no GPUs
+        return []
+
+
+def run_local(tasks: list[SceneTask], root: Path, global_args: list[str], jobs: int | None, use_gpus: bool,
+              rerun: bool = False) -> list[dict[str, Any]]:
+    """A pool of child processes: one per visible GPU (CUDA_VISIBLE_DEVICES set per child), else `jobs`
+    on the CPU with the cores shared out (OMP/numba threads per child)."""
+    gpus = visible_gpus() if use_gpus else []
+    n = max(1, jobs if jobs is not None else (len(gpus) or 1))
+    slots: queue.Queue[dict[str, str]] = queue.Queue()
+    if gpus:
+        n = min(n, len(gpus))
+        for g in gpus[:n]:
+            slots.put({"CUDA_VISIBLE_DEVICES": g})
+    else:
+        threads = str(max(1, (os.cpu_count() or 1) // n))  # share the cores out instead of oversubscribing
+        for _ in range(n):
+            slots.put({"OMP_NUM_THREADS": threads, "NUMBA_NUM_THREADS": threads})
+    log(f"batch: {len(tasks)} scene(s), {n} at a time" + (f" on GPUs {', '.join(gpus[:n])}" if gpus else " on the CPU"))
+
+    def one(i_task: tuple[int, SceneTask]) -> dict[str, Any]:
+        i, task = i_task
+        env = slots.get()
+        try:
+            res = run_scene(task, str(root), global_args, env, rerun)
+        finally:
+            slots.put(env)
+        log(f"batch: [{i + 1}/{len(tasks)}] {task.name}: {res['status']}"
+            + (f" in {res['seconds']:.0f} s" if res["status"] != "skipped" else "")
+            + (f" ({res['error']})" if res["error"] else ""))
+        return res
+
+    with ThreadPoolExecutor(max_workers=n) as pool:
+        return list(pool.map(one, enumerate(tasks)))
+
+
+@dataclass
+class SlurmOptions:
+    cluster: str | None = None  # None: Slurm when available (submitit's auto); "local"/"debug": no cluster
+    partition: str | None = None
+    time_min: int = 120
+    gpus: int = 0
+    cpus: int = 4
+    mem_gb: int | None = None
+    array_parallelism: int = 32
+
+
+def run_submitit(tasks: list[SceneTask], root: Path, global_args: list[str], opts: SlurmOptions,
+                 rerun: bool = False) -> list[dict[str, Any]]:
+    """One job-array element per scene; logs in ROOT/_batch/logs/<job id>/. Waits for the results."""
+    try:
+        import submitit
+    except ImportError:
+        raise InputError("--executor slurm needs submitit: pip install 'wgs[slurm]'") from None
+    folder = root / BATCH_DIR / "logs" / "%j"
+    executor = submitit.AutoExecutor(folder=folder, cluster=opts.cluster)
+    executor.update_parameters(timeout_min=opts.time_min, gpus_per_node=opts.gpus or None, cpus_per_task=opts.cpus,
+                               mem_gb=opts.mem_gb, name="wgs-batch", slurm_partition=opts.partition,
+                               slurm_array_parallelism=opts.array_parallelism)
+    n = len(tasks)
+    jobs = executor.map_array(run_scene, tasks, [str(root)] * n, [global_args] * n, [None] * n, [rerun] * n)
+    log(f"batch: submitted {n} job(s) to {executor.cluster} (first id {jobs[0].job_id if jobs else '-'})")
+    out = []
+    for task, job in zip(tasks, jobs, strict=True):
+        try:
+            res = job.result()
+        except Exception as exc:  # noqa: BLE001 - the job itself died (time limit, node failure, ...)
+            msg = str(exc).strip().splitlines()[-1][:300] if str(exc).strip() else type(exc).__name__
+            res = {"name": task.name, "status": "failed", "seconds": None, "error": f"job {job.job_id}: {msg}"}
+            atomic_write_bytes(root / task.name / ERROR, (res["error"] + "\n").encode())
+        log(f"batch: {task.name}: {res['status']}" + (f" ({res['error']})" if res["error"] else ""))
+        out.append(res)
+    return out
+
+
+# ----------------------------------------------------------------------------- summary
+def summarize(root: Path, tasks: list[SceneTask], ran: dict[str, dict[str, Any]] | None = None) -> dict[str, Any]:
+    """Every scene of the list (run now or before): status, metrics, stage times; mean and std."""
+    rows = []
+    for t in tasks:
+        ws = root / t.name
+        res = _read(ws / STAGE_DIRS["eval"] / "results.json")
+        err = (ws / ERROR).read_text(encoding="utf-8").splitlines()[0] if (ws / ERROR).is_file() else None
+        status = "failed" if err else ("done" if isinstance(res, dict) else "not run")
+        row: dict[str, Any] = {"scene": t.name, "path": t.scene, "status": status, "error": err}
+        if status == "done":
+            times = res.get("stage_times_s") or {}
+            row.update({m: res.get(m) for m in METRICS})
+            row.update({f"coarse_{m}": (res.get("coarse") or {}).get(m) for m in METRICS})
+            row["total_time_s"] = round(sum(v for v in times.values() if isinstance(v, int | float)), 2)
+            row["stage_times_s"] = times
+        if ran and t.name in ran:
+            row["this_run"] = ran[t.name]["status"]
+        rows.append(row)
+    done = [r for r in rows if r["status"] == "done"]
+    keys = [*METRICS, *(f"coarse_{m}" for m in METRICS), "total_time_s"]
+    stages = sorted({s for r in done for s in r["stage_times_s"]})
+    mean, std = {}, {}
+    for k in keys + [f"time_{s}" for s in stages]:
+        vals = [(r["stage_times_s"].get(k[5:]) if k.startswith("time_") else r.get(k)) for r in done]
+        vals = [v for v in vals if isinstance(v, int | float)]
+        mean[k] = statistics.fmean(vals) if vals else None
+        std[k] = statistics.pstdev(vals) if len(vals) > 1 else (0.0 if vals else None)
+    counts = {s: sum(r["status"] == s for r in rows) for s in ("done", "failed", "not run")}
+    return {"root": str(root), "counts": counts, "scenes": rows, "mean": mean, "std": std, "stages": stages}
+
+
+def write_summary(root: Path, summary: dict[str, Any]) -> None:
+    out = root / BATCH_DIR
+    atomic_write_json(out / "summary.json", summary)
+    cols = ["scene", "status", *METRICS, *(f"coarse_{m}" for m in METRICS), "total_time_s",
+            *(f"time_{s}" for s in summary["stages"]), "error"]
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    w.writerow(cols)
+    for r in summary["scenes"]:
+        w.writerow([r.get(c) if not c.startswith("time_") else (r.get("stage_times_s") or {}).get(c[5:])
+                    for c in cols])
+    for label in ("mean", "std"):
+        w.writerow([label, "", *(summary[label].get(c) for c in cols[2:-1]), ""])
+    atomic_write_bytes(out / "summary.csv", buf.getvalue().encode())
+
+
+def print_summary(summary: dict[str, Any]) -> None:
+    from rich.table import Table
+
+    from .progress import results
+
+    def fmt(v, nd=2):
+        return "" if v is None else f"{v:.{nd}f}"
+
+    table = Table(title=f"wgs batch: {summary['root']}")
+    for c in ("scene", "status", "PSNR", "SSIM", "LPIPS", "PSNR G_c", "time (s)", "error"):
+        table.add_column(c)
+    for r in summary["scenes"]:
+        status = r["status"] + (f" ({r['this_run']})" if r.get("this_run") == "skipped" else "")
+        table.add_row(r["scene"], status, fmt(r.get("psnr")), fmt(r.get("ssim"), 3), fmt(r.get("lpips"), 3),
+                      fmt(r.get("coarse_psnr")), fmt(r.get("total_time_s"), 1), (r["error"] or "")[:80])
+    m, s = summary["mean"], summary["std"]
+    table.add_row("mean ± std", f"{summary['counts']['done']} done",
+                  *(f"{fmt(m[k], nd)} ± {fmt(s[k], nd)}" if m[k] is not None else ""
+                    for k, nd in (("psnr", 2), ("ssim", 3), ("lpips", 3), ("coarse_psnr", 2), ("total_time_s", 1))),
+                  "")
+    results.print(table)
+
