@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import shutil
 import statistics
@@ -127,23 +128,53 @@ def bench_pipeline(scene: str, root: str, preset: str, views: int, downscale: in
     }
 
 
+def bench_batch(root: str, preset: str, seeds: tuple[int, ...] = (0, 1, 2), jobs: int = 2) -> dict:
+    """`wgs batch` over the bundled example generated with three seeds: --jobs N against --jobs 1
+    (sequential), one after the other in fresh roots."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+    from make_scene import make_scene
+
+    base = Path(root) / "batch"
+    if base.exists():
+        shutil.rmtree(base)
+    lines = [str(make_scene(base / "scenes" / f"example_seed{s}", seed=s)) for s in seeds]
+    (base / "scenes.txt").write_text("\n".join(lines) + "\n")
+    walls = {}
+    for n in (jobs, 1):
+        t0 = time.perf_counter()
+        subprocess.run([sys.executable, "-m", "wgs", "batch", str(base / "scenes.txt"), "-o", str(base / f"jobs{n}"),
+                        "--jobs", str(n), "--preset", preset], check=True)
+        walls[n] = time.perf_counter() - t0
+    summary = json.loads((base / f"jobs{jobs}" / "_batch" / "summary.json").read_text())
+    return {"benchmark": "batch", "preset": preset, "scenes": len(seeds), "jobs": jobs,
+            "wall_s": {f"jobs{n}": round(w, 1) for n, w in walls.items()},
+            "speedup": walls[1] / walls[jobs], "mean": summary["mean"], "std": summary["std"],
+            "machine": {"platform": platform.platform(), "cpus": os.cpu_count()}}
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(prog="python -m wgs.bench")
-    ap.add_argument("which", choices=["rasterizer", "pipeline"])
+    ap.add_argument("which", choices=["rasterizer", "pipeline", "batch"])
     ap.add_argument("--json", action="store_true", help="print JSON instead of a table")
     ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--ref-repeats", type=int, default=3)
     ap.add_argument("--scene", default=str(Path(__file__).resolve().parents[2] / "shared" / "data" / "lego"))
     ap.add_argument("--root", default="bench_out")
-    ap.add_argument("--preset", default="default")
+    ap.add_argument("--preset", default=None, help="default for pipeline, fast for batch")
     ap.add_argument("--views", type=int, default=4)
     ap.add_argument("--downscale", type=int, default=2)
     a = ap.parse_args(argv)
+    if a.which == "batch":
+        res = bench_batch(a.root, a.preset or "fast")
+        (Path(a.root) / "batch.json").write_text(json.dumps(res, indent=2))
+        json.dump(res, sys.stdout, indent=2)
+        print()
+        return
     if a.which == "pipeline":
         if not Path(a.scene).is_dir():
             print(f"scene {a.scene} not found: skipped")
             return
-        res = bench_pipeline(a.scene, a.root, a.preset, a.views, a.downscale)
+        res = bench_pipeline(a.scene, a.root, a.preset or "default", a.views, a.downscale)
         Path(a.root).mkdir(exist_ok=True)
         (Path(a.root) / "pipeline.json").write_text(json.dumps(res, indent=2))
         json.dump(res, sys.stdout, indent=2)
