@@ -183,6 +183,8 @@ def run_local(tasks: list[SceneTask], root: Path, global_args: list[str], jobs: 
     on the CPU with the cores shared out (OMP/numba threads per child)."""
     gpus = visible_gpus() if use_gpus else []
     n = max(1, jobs if jobs is not None else (len(gpus) or 1))
+    if gpus:  # each child sees one GPU as cuda:0
+        global_args = ["cuda" if a.startswith("cuda:") else a for a in global_args]
     slots: queue.Queue[dict[str, str]] = queue.Queue()
     if gpus:
         n = min(n, len(gpus))

@@ -159,6 +159,7 @@ def register(cli, stage_common, workspace_option) -> None:
         """Run `wgs all` on many scenes. SCENES: a text file (a scene folder per line, optional `wgs all`
         options after it) or a quoted glob of scene folders. Exit status 1 when a scene failed."""
         import sys
+        import time
 
         from .. import batch as b
 
@@ -168,6 +169,7 @@ def register(cli, stage_common, workspace_option) -> None:
                      for t in tasks]
         root = root.resolve()
         ran: dict = {}
+        t0 = time.perf_counter()
         if not summary_only:
             r, n = b.shard_from_env(rank, world_size)
             mine = b.shard(tasks, r, n)
@@ -182,6 +184,8 @@ def register(cli, stage_common, workspace_option) -> None:
                 out = b.run_submitit(mine, root, args, opts, rerun=force)
             ran = {o["name"]: o for o in out}
         summary = b.summarize(root, tasks, ran)
+        if ran:
+            summary["batch_wall_time_s"] = round(time.perf_counter() - t0, 1)
         b.write_summary(root, summary)
         b.print_summary(summary)
         log(f"batch: summary in {root / b.BATCH_DIR / 'summary.json'} and summary.csv")
