@@ -307,17 +307,22 @@ def print_summary(summary: dict[str, Any]) -> None:
     def fmt(v, nd=2):
         return "" if v is None else f"{v:.{nd}f}"
 
+    rows, m, sd = summary["scenes"], summary["mean"], summary["std"]
+    # (header, row key, decimals); LPIPS and error columns only when some scene has them
+    cols = [("PSNR", "psnr", 2), ("SSIM", "ssim", 3), ("LPIPS", "lpips", 3), ("PSNR G_c", "coarse_psnr", 2),
+            ("time (s)", "total_time_s", 1)]
+    cols = [c for c in cols if c[1] != "lpips" or any(r.get("lpips") is not None for r in rows)]
+    with_errors = any(r["error"] for r in rows)
     table = Table(title=f"wgs batch: {summary['root']}")
-    for c in ("scene", "status", "PSNR", "SSIM", "LPIPS", "PSNR G_c", "time (s)", "error"):
-        table.add_column(c)
-    for r in summary["scenes"]:
+    table.add_column("scene", no_wrap=True, min_width=min(40, max(len(r["scene"]) for r in rows)))
+    for c in ("status", *(c[0] for c in cols), *(["error"] if with_errors else [])):
+        table.add_column(c, overflow="fold")
+    for r in rows:
         status = r["status"] + (f" ({r['this_run']})" if r.get("this_run") == "skipped" else "")
-        table.add_row(r["scene"], status, fmt(r.get("psnr")), fmt(r.get("ssim"), 3), fmt(r.get("lpips"), 3),
-                      fmt(r.get("coarse_psnr")), fmt(r.get("total_time_s"), 1), (r["error"] or "")[:80])
-    m, s = summary["mean"], summary["std"]
+        table.add_row(r["scene"], status, *(fmt(r.get(k), nd) for _, k, nd in cols),
+                      *([(r["error"] or "")[:120]] if with_errors else []))
     table.add_row("mean ± std", f"{summary['counts']['done']} done",
-                  *(f"{fmt(m[k], nd)} ± {fmt(s[k], nd)}" if m[k] is not None else ""
-                    for k, nd in (("psnr", 2), ("ssim", 3), ("lpips", 3), ("coarse_psnr", 2), ("total_time_s", 1))),
-                  "")
+                  *(f"{fmt(m[k], nd)} ± {fmt(sd[k], nd)}" if m.get(k) is not None else "" for _, k, nd in cols),
+                  *([""] if with_errors else []))
     results.print(table)
 
