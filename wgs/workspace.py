@@ -5,8 +5,9 @@ Layout::
     WS/scene/  1_coarse/  2_mask_data/  3_finetune/  4_repair/  5_fine/  6_eval/
     WS/<stage>/manifest.json   resolved config, fingerprint, upstream fingerprints, times, status
 
-A stage writes into a hidden staging folder and is swapped in by rename only when it succeeded,
-so an interrupted or failed stage leaves the last good output untouched.
+A stage writes into a staging folder (WS/.resume/<stage>/out/) and is swapped in by rename only
+when it succeeded, so an interrupted or failed stage leaves the last good output untouched; with
+--resume an interrupted stage continues from that folder and its loops' saved states.
 """
 
 from __future__ import annotations
@@ -280,7 +281,10 @@ class Workspace:
         old = _read_text(rdir / "fingerprint")
         if rdir.exists():
             if self.resume and old == fp:
-                log(f"{COMMANDS[stage]}: resuming from the saved state")
+                saved = any(rdir.glob("*.pt"))
+                log(f"{COMMANDS[stage]}: resuming " + ("from the saved state" if saved else
+                                                       "(keeping the files written before the interruption)"))
+                (rdir / "out").mkdir(parents=True, exist_ok=True)
                 return rdir / "out"
             if not self.resume and any(rdir.glob("*.pt")):
                 log(f"{COMMANDS[stage]}: starting over (add --resume to continue from the saved state)")
