@@ -199,3 +199,26 @@ def test_deferred_sigint_second_ctrl_c_stops_at_once():
             time.sleep(0.01)
     assert not wgs.resume.stop_requested()
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_a_finished_loop_resumes_to_its_result_without_moments(tmp_path):
+    """Killed after training, before the outputs were written: the final state holds the model only."""
+    from conftest import ring_w2c
+
+    from wgs.config import TrainConfig
+    from wgs.gaussians.splats import create_splats
+    from wgs.gaussians.trainer import train_gaussians
+    from wgs.scene.dataset import Frame
+
+    f = Frame("a.png", torch.tensor([[20.0, 0, 8], [0, 20, 8], [0, 0, 1]]),
+              torch.tensor(ring_w2c()[0], dtype=torch.float32), 16, 16, torch.rand(16, 16, 3))
+    sp = create_splats(torch.randn(40, 3) * 0.1, torch.rand(40, 3), torch.full((40,), 0.05), 0)
+    cfg = TrainConfig(iterations=6, refine_start=100, floater_every=0, log_every=1)
+    first = train_gaussians(sp, [f], cfg, torch.device("cpu"), extent=1.0, has_masks=False,
+                            checkpoint=Checkpointer(tmp_path / "s.pt", every_s=1e9, resume=False))
+    saved = torch.load(tmp_path / "s.pt", weights_only=True)
+    assert saved["finished"] and "optimizers" not in saved
+    again = train_gaussians(sp, [f], cfg, torch.device("cpu"), extent=1.0, has_masks=False,
+                            checkpoint=Checkpointer(tmp_path / "s.pt", every_s=1e9, resume=True))
+    assert again.iterations == first.iterations == 6 and again.losses == first.losses
+    assert all(torch.equal(again.splats[k], first.splats[k]) for k in first.splats)

@@ -106,9 +106,10 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
     if saved is not None:
         params = {k: v.to(device).requires_grad_(True) for k, v in saved["params"].items()}
         optimizers = make_optimizers(params, cfg, extent)
-        for k, opt in optimizers.items():
-            opt.load_state_dict(saved["optimizers"][k])
-        state = {k: (None if v is None else v.to(device)) for k, v in saved["strategy"].items()}
+        if not saved["finished"]:
+            for k, opt in optimizers.items():
+                opt.load_state_dict(saved["optimizers"][k])
+            state = {k: (None if v is None else v.to(device)) for k, v in saved["strategy"].items()}
         gen.set_state(saved["generator"])
         set_rng_state(saved["rng"])
         losses, order, it, sched = list(saved["losses"]), list(saved["order"]), saved["it"], saved["sched"]
@@ -116,11 +117,13 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
         finished = saved["finished"]
 
     def snapshot() -> dict:
-        return {"params": {k: v.detach().cpu() for k, v in params.items()},
-                "optimizers": {k: o.state_dict() for k, o in optimizers.items()},
-                "strategy": {k: (None if v is None else v.cpu()) for k, v in state.items()},
-                "generator": gen.get_state(), "rng": rng_state(), "losses": losses, "order": order,
-                "it": it, "sched": sched, "elapsed": time.perf_counter() - t0, "finished": finished}
+        out = {"params": {k: v.detach().cpu() for k, v in params.items()},
+               "generator": gen.get_state(), "rng": rng_state(), "losses": losses, "order": order,
+               "it": it, "sched": sched, "elapsed": time.perf_counter() - t0, "finished": finished}
+        if not finished:  # a finished loop needs no moments: its final save stays the size of the model
+            out["optimizers"] = {k: o.state_dict() for k, o in optimizers.items()}
+            out["strategy"] = {k: (None if v is None else v.cpu()) for k, v in state.items()}
+        return out
 
     with progress_bar(desc, cfg.iterations) as prog, deferred_sigint():
         prog.update(0, completed=it)
