@@ -193,3 +193,16 @@ def test_damaged_resume_state(ws):
     fp = Workspace(ws).stage_fingerprint("fine", as_dict(ctx.config("fine", None)), {"seed": 0})
     (rdir / "fingerprint").write_text(fp)  # the saved state belongs to this very run
     expect_error(ws.parent, wgs(ws, "fine", resume=True), "gf.pt", "without --resume")
+
+
+@pytest.mark.parametrize("name,needle", [(b"../../outside.png", b"points outside the scene folder"),
+                                         (b"caf\xe9.png", b"not valid UTF-8")])
+def test_colmap_image_name_escaping_or_not_utf8(tmp_path, blender_scene, name, needle):
+    from conftest import to_colmap
+
+    scene = to_colmap(blender_scene, tmp_path / "colmap")
+    images_txt = scene / "sparse" / "0" / "images.txt"
+    data = images_txt.read_bytes()
+    first = sorted(p.name for p in (scene / "images").iterdir())[0].encode()
+    images_txt.write_bytes(data.replace(b" " + first + b"\n", b" " + name + b"\n", 1))
+    expect_error(tmp_path, ["-q", "-w", tmp_path / "ws", "prepare", scene], needle.decode(), "sparse")

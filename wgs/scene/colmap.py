@@ -13,6 +13,7 @@ import pycolmap
 
 from ..errors import InputError
 from .images import IMAGE_EXTS, find_with_stem
+from .paths import safe_join
 from .types import Distortion, RawScene, View
 
 PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
@@ -49,23 +50,27 @@ def read_colmap_scene(root: Path) -> RawScene:
     mask_dir = root / "masks" if (root / "masks").is_dir() else None
     views: list[View] = []
     notes: list[str] = []
-    for image_id in sorted(rec.images, key=lambda i: rec.images[i].name):
+    try:  # pycolmap decodes names lazily: bytes that are not UTF-8 fail here
+        named = sorted((rec.images[i].name, i) for i in rec.images)
+    except UnicodeDecodeError:
+        raise InputError("image names in the model are not valid UTF-8", model_dir) from None
+    for name, image_id in named:
         im = rec.images[image_id]
         if not im.has_pose:
-            notes.append(f"image {im.name} has no pose: skipped")
+            notes.append(f"image {name} has no pose: skipped")
             continue
         cam = rec.cameras[im.camera_id]
-        path = image_dir / im.name
+        path = safe_join(image_dir, name, model_dir)  # names in the model must stay inside images/
         if not path.is_file():
             notes.append(f"image {path} is missing: skipped")
             continue
         w2c = np.eye(4)
         w2c[:3, :] = np.asarray(im.cam_from_world().matrix(), dtype=np.float64)
         dist = None if cam.model_name in PINHOLE_MODELS else Distortion(cam.model_name, list(map(float, cam.params)))
-        mask = find_with_stem(mask_dir, Path(im.name).stem) if mask_dir else None
+        mask = find_with_stem(mask_dir, Path(name).stem) if mask_dir else None
         if mask_dir and mask is None:
-            mask = find_with_stem(mask_dir, im.name)  # masks named like "a.png.png"
-        views.append(View(im.name, path, camera_K(cam), w2c, int(cam.width), int(cam.height), mask, dist))
+            mask = find_with_stem(mask_dir, name)  # masks named like "a.png.png"
+        views.append(View(name, path, camera_K(cam), w2c, int(cam.width), int(cam.height), mask, dist))
     files = sorted(model_dir.iterdir())
     return RawScene(root, "colmap", views, notes=notes, metadata_files=files)
 
