@@ -50,7 +50,7 @@ def _num(d: dict[str, Any], key: str, path: Path, default: float | None = None) 
 
 def _fov(d: dict[str, Any], key: str, path: Path) -> float:
     fov = _num(d, key, path)
-    if not 0 < fov < np.pi:
+    if not 1e-4 <= fov <= np.pi - 1e-4:  # closer to 0 or pi the focal length is 0 or overflows
         raise InputError(f"{key} = {fov} is not a field of view in (0, pi)", path)
     return fov
 
