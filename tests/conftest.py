@@ -16,6 +16,38 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "examples"))
 LEGO = ROOT.parent / "shared" / "data" / "lego"
 
+# The smallest config that runs every stage (seconds per `wgs all` on a 48-64 px scene).
+TINY = """
+[coarse]
+iterations = 30
+refine_start = 10
+refine_every = 10
+init_points = 800
+hull_resolution = 32
+[mask_data]
+iterations = 30
+refine_start = 10
+refine_every = 10
+init_points = 800
+hull_resolution = 32
+warmup = 10
+pair_every = 10
+[finetune]
+d_steps = 8
+d_channels = 8
+d_batch = 4
+u_max_steps = 8
+u_channels = 8
+u_eval_every = 4
+eval_steps = 2
+[repair]
+steps = 2
+[fine]
+iterations = 20
+refine_start = 5
+refine_every = 5
+"""
+
 from make_scene import make_scene  # noqa: E402
 
 from wgs.scene.convention import GL_TO_CV, invert_rigid  # noqa: E402

@@ -14,14 +14,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import expect_error, run_cli, to_idr
+from conftest import TINY, expect_error, run_cli, to_idr
 
 from wgs.cli import Ctx
 from wgs.config import as_dict, load_config_file
 from wgs.scene.images import read_image, write_png
 from wgs.workspace import Workspace
-
-TINY = Path(__file__).with_name("test_end_to_end.py").read_text().split('TINY = """')[1].split('"""')[0]
 
 
 @pytest.fixture(scope="module")

@@ -11,13 +11,11 @@ from pathlib import Path
 
 import click
 import pytest
-from conftest import expect_error, run_cli
+from conftest import TINY, expect_error, run_cli
 
 from wgs.batch import SceneTask, read_scene_list, shard, shard_from_env
 from wgs.cli import cli
 from wgs.errors import InputError
-
-TINY = Path(__file__).with_name("test_end_to_end.py").read_text().split('TINY = """')[1].split('"""')[0]
 
 
 @pytest.fixture(scope="module")
@@ -125,8 +123,8 @@ def test_slurm_path_through_submitit_local_executor(scenes, tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert "submitted 1 job(s) to local" in proc.stderr
     assert (root / "cube" / "6_eval" / "results.json").is_file()
-    job_logs = [p for p in (root / "_batch" / "logs").iterdir() if p.is_dir()]
-    assert job_logs and any(p.name.endswith("_result.pkl") for p in job_logs[0].iterdir())
+    job_logs = [p for p in (root / "_batch" / "logs").iterdir() if p.is_dir() and p.name.isdigit()]  # <job id>/
+    assert job_logs and any(p.name.endswith("_result.pkl") for d in job_logs for p in d.iterdir())
     summary = json.loads((root / "_batch" / "summary.json").read_text())
     assert summary["counts"]["done"] == 1
 

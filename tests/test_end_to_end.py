@@ -6,40 +6,10 @@ import shutil
 
 import pytest
 from click.testing import CliRunner
+from conftest import TINY
 
 from wgs.cli import cli
 from wgs.workspace import Workspace
-
-TINY = """
-[coarse]
-iterations = 30
-refine_start = 10
-refine_every = 10
-init_points = 800
-hull_resolution = 32
-[mask_data]
-iterations = 30
-refine_start = 10
-refine_every = 10
-init_points = 800
-hull_resolution = 32
-warmup = 10
-pair_every = 10
-[finetune]
-d_steps = 8
-d_channels = 8
-d_batch = 4
-u_max_steps = 8
-u_channels = 8
-u_eval_every = 4
-eval_steps = 2
-[repair]
-steps = 2
-[fine]
-iterations = 20
-refine_start = 5
-refine_every = 5
-"""
 
 CONTRACT = [
     "scene/scene.json", "scene/sparse/cameras.txt", "scene/sparse/images.txt", "scene/split_train.txt",

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import TINY
 
 import wgs.resume
 from wgs.config import FinetuneConfig
@@ -20,36 +21,10 @@ from wgs.resume import Checkpointer, Interrupted
 from wgs.stages.s3_finetune import train_denoiser, train_hf_unet
 from wgs.stress import max_param_difference, outcome
 
-CFG = """
-[coarse]
-iterations = 150
-refine_start = 20
-refine_every = 20
-init_points = 800
-hull_resolution = 32
-[mask_data]
-iterations = 150
-refine_start = 20
-refine_every = 20
-init_points = 800
-hull_resolution = 32
-warmup = 50
-pair_every = 25
-[finetune]
-d_steps = 8
-d_channels = 8
-d_batch = 4
-u_max_steps = 8
-u_channels = 8
-u_eval_every = 4
-eval_steps = 2
-[repair]
-steps = 2
-[fine]
-iterations = 20
-refine_start = 5
-refine_every = 5
-"""
+# TINY with longer coarse and mask-data loops, so a kill lands in their middle
+CFG = (TINY.replace("iterations = 30\nrefine_start = 10\nrefine_every = 10",
+                    "iterations = 150\nrefine_start = 20\nrefine_every = 20")
+       .replace("warmup = 10\npair_every = 10", "warmup = 50\npair_every = 25"))
 
 
 @pytest.fixture(scope="module")
