@@ -5,7 +5,7 @@ import json
 import math
 
 from click.testing import CliRunner
-from test_end_to_end import TINY
+from conftest import TINY, make_scene
 
 from wgs.ablation import ROWS, pareto, parse_rows
 from wgs.cli import cli
@@ -13,12 +13,6 @@ from wgs.workspace import Workspace
 
 
 def test_ablate_all_rows(tmp_path):
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
-    from make_scene import make_scene
-
     scene = make_scene(tmp_path / "scene", seed=5, size=64, n_train=4, n_test=3)
     cfg = tmp_path / "wgs.toml"
     cfg.write_text(TINY)

@@ -8,13 +8,12 @@ import json
 import os
 import pickle
 import shutil
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-from conftest import TINY, expect_error, run_cli, to_idr
+from conftest import TINY, expect_error, make_scene, run_cli, to_idr
 
 from wgs.cli import Ctx
 from wgs.config import as_dict, load_config_file
@@ -25,8 +24,6 @@ from wgs.workspace import Workspace
 @pytest.fixture(scope="module")
 def done(tmp_path_factory):
     """A finished tiny `wgs all` workspace (copied by each test)."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
-    from make_scene import make_scene
 
     base = tmp_path_factory.mktemp("bad_stages")
     scene = make_scene(base / "scene", seed=4, size=48, n_train=4, n_test=3)
@@ -128,9 +125,6 @@ def test_model_config_of_another_shape(ws):
 
 
 def test_workspace_of_another_scene(ws, tmp_path):
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
-    from make_scene import make_scene
-
     other = make_scene(tmp_path / "other", seed=5, size=48, n_train=4, n_test=3)
     before = (ws / "scene/manifest.json").read_text()
     expect_error(ws.parent, wgs(ws, "all", other), "holds another scene", "--force")

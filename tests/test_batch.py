@@ -11,7 +11,7 @@ from pathlib import Path
 
 import click
 import pytest
-from conftest import TINY, expect_error, run_cli
+from conftest import TINY, expect_error, make_scene, run_cli
 
 from wgs.batch import SceneTask, read_scene_list, shard, shard_from_env
 from wgs.cli import cli
@@ -20,9 +20,6 @@ from wgs.errors import InputError
 
 @pytest.fixture(scope="module")
 def scenes(tmp_path_factory):
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
-    from make_scene import make_scene
-
     base = tmp_path_factory.mktemp("batch")
     for i, name in enumerate(["apple", "broken", "cube"]):
         make_scene(base / "data" / name, seed=10 + i, size=48, n_train=4, n_test=3)

@@ -4,6 +4,7 @@ import json
 
 import pytest
 import torch
+from conftest import make_scene
 
 from wgs.errors import InputError
 from wgs.models import controlnet_lora as cl
@@ -98,17 +99,12 @@ def test_save_and_reload_reproduce_the_output(tiny_sd, tmp_path):
 
 def test_finetune_and_repair_stages_with_controlnet(tiny_sd, tmp_path):
     """`wgs finetune --diffusion controlnet` trains LoRA on the LL pairs; `wgs repair` then uses it."""
-    import sys
-    from pathlib import Path
-
     from click.testing import CliRunner
     from test_end_to_end import TINY
 
     from wgs.cli import cli
     from wgs.workspace import Workspace
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
-    from make_scene import make_scene
 
     scene = make_scene(tmp_path / "scene", seed=6, size=48, n_train=4, n_test=2)
     cfg = tmp_path / "wgs.toml"

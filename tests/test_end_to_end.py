@@ -6,7 +6,7 @@ import shutil
 
 import pytest
 from click.testing import CliRunner
-from conftest import TINY
+from conftest import TINY, make_scene
 
 from wgs.cli import cli
 from wgs.workspace import Workspace
@@ -32,12 +32,6 @@ def run_all(cfg, ws, scene, *extra):
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
-    from make_scene import make_scene
-
     base = tmp_path_factory.mktemp("e2e")
     scene = make_scene(base / "scene", seed=2, size=64, n_train=4, n_test=5)
     cfg = base / "wgs.toml"
@@ -109,12 +103,6 @@ def test_left_out_without_masks_and_test_views(tiny, tmp_path):
 
 
 def test_many_views_leave_out_repair(tmp_path, tiny):
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
-    from make_scene import make_scene
-
     _, cfg, _, _ = tiny
     scene = make_scene(tmp_path / "many", seed=3, size=32, n_train=12, n_test=2)
     res = CliRunner().invoke(cli, ["--config", str(cfg), "-w", str(tmp_path / "ws"), "all", str(scene)],

@@ -1,6 +1,7 @@
 """Novel viewpoints come from the training cameras only."""
 
 import torch
+from conftest import make_scene
 
 from wgs.scene.dataset import Frame
 from wgs.scene.orbit import look_at, novel_views
@@ -37,8 +38,6 @@ def test_novel_views_do_not_depend_on_test_cameras(tmp_path):
     """Prepare twice with a test camera moved: everything before eval is identical."""
     import json
     import shutil
-    import sys
-    from pathlib import Path
 
     import numpy as np
     from click.testing import CliRunner
@@ -47,8 +46,6 @@ def test_novel_views_do_not_depend_on_test_cameras(tmp_path):
     from wgs.scene.dataset import load_prepared
     from wgs.workspace import Workspace
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
-    from make_scene import make_scene
 
     a = make_scene(tmp_path / "a", seed=4, size=32, n_train=4, n_test=3)
     b = tmp_path / "b"

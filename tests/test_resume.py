@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import TINY
+from conftest import TINY, make_scene
 
 import wgs.resume
 from wgs.config import FinetuneConfig
@@ -29,9 +29,6 @@ CFG = (TINY.replace("iterations = 30\nrefine_start = 10\nrefine_every = 10",
 
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory):
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
-    from make_scene import make_scene
-
     base = tmp_path_factory.mktemp("resume")
     scene = make_scene(base / "scene", seed=2, size=64, n_train=4, n_test=5)
     cfg = base / "wgs.toml"
@@ -96,12 +93,19 @@ def test_ctrl_c_saves_state_with_one_line_and_resume_continues(setup, tmp_path):
     assert all(torch.equal(a[k], b[k]) for k in b)
 
 
-def test_saved_state_of_other_settings_is_not_resumed(setup, tmp_path):
+def coarse_killed_midway(setup, tmp_path) -> Path:
+    """A prepared workspace whose coarse stage was SIGKILLed after its first saved state."""
     scene, cfg, _ = setup
     ws = tmp_path / "ws"
     subprocess.run(wgs_cmd(ws, cfg, "prepare", str(scene)), check=True, capture_output=True)
     proc = start_and_signal_when(wgs_cmd(ws, cfg, "coarse"), ws / ".resume/1_coarse/gc.pt", signal.SIGKILL)
     proc.wait()
+    return ws
+
+
+def test_saved_state_of_other_settings_is_not_resumed(setup, tmp_path):
+    _, cfg, _ = setup
+    ws = coarse_killed_midway(setup, tmp_path)
     res = subprocess.run(wgs_cmd(ws, cfg, "coarse", "--iterations", "40", resume=True, quiet=False),
                          capture_output=True, text=True)
     assert res.returncode == 0, res.stderr
@@ -110,11 +114,8 @@ def test_saved_state_of_other_settings_is_not_resumed(setup, tmp_path):
 
 
 def test_without_resume_a_rerun_starts_over_and_says_so(setup, tmp_path):
-    scene, cfg, _ = setup
-    ws = tmp_path / "ws"
-    subprocess.run(wgs_cmd(ws, cfg, "prepare", str(scene)), check=True, capture_output=True)
-    proc = start_and_signal_when(wgs_cmd(ws, cfg, "coarse"), ws / ".resume/1_coarse/gc.pt", signal.SIGKILL)
-    proc.wait()
+    _, cfg, _ = setup
+    ws = coarse_killed_midway(setup, tmp_path)
     res = subprocess.run(wgs_cmd(ws, cfg, "coarse", quiet=False), capture_output=True, text=True)
     assert res.returncode == 0, res.stderr
     assert "starting over (add --resume" in res.stderr
