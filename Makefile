@@ -8,7 +8,10 @@ TORCH_SPEC ?= $(if $(shell command -v nvidia-smi 2>/dev/null),torch,torch==2.13.
 DEMO_WS ?= demo_ws
 export NUMBA_CACHE_DIR ?= $(CURDIR)/.numba_cache
 
-.PHONY: setup demo test bench ablation stress lint clean
+MIRROR ?= $(CURDIR)/../.mirror
+PRIOR_BUDGET_MIN ?= 120
+
+.PHONY: setup demo test bench ablation stress lint clean prior
 
 setup: $(VENV)/.installed
 
@@ -36,6 +39,15 @@ bench: $(VENV)/.installed
 
 ablation: $(VENV)/.installed
 	$(BIN)/wgs -w ablate ablate ../shared/data/lego --views 4 --downscale 2
+
+# Rebuild the repair prior shipped in wgs/prior/weights (resumable; cache in ~/.cache/wgs-prior):
+# objects from the snapshots in MIRROR (owner+name/repo, see README) + procedural ones, our coarse
+# stage on sparse views of each, pairs at novel poses, then D and U (a GPU is used when present).
+prior: $(VENV)/.installed
+	$(BIN)/python -m pip install -q -e ".[prior]"
+	$(BIN)/python -m wgs.prior corpus --mirror $(MIRROR) --procedural 60 --limit 150
+	$(BIN)/python -m wgs.prior pairs --budget-min $(PRIOR_BUDGET_MIN)
+	$(BIN)/python -m wgs.prior train
 
 # Slow robustness checks: SIGKILL at points spread over every stage + rerun; long loader fuzzing.
 stress: $(VENV)/.installed

@@ -40,6 +40,8 @@ u_max_steps = 8
 u_channels = 8
 u_eval_every = 4
 eval_steps = 2
+prior_steps = 4
+prior_eval_every = 2
 [repair]
 steps = 2
 [fine]

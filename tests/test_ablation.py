@@ -42,10 +42,16 @@ def test_ablate_all_rows(tmp_path):
     orm = Workspace(root / "_mask_orm").manifest("mask_data")["fingerprint"]
     assert Workspace(root / "orm-rgb").manifest("mask_data")["fingerprint"] == orm
     assert Workspace(root / "orm-wavelet-u-j2").manifest("finetune")["levels"] == 2
+    # the prior row starts from the shipped prior, the paper's rows from scratch; both report the repair gain
+    assert Workspace(root / "orm-wavelet-u-prior").manifest("finetune")["prior"].endswith("weights")
+    assert Workspace(root / "orm-wavelet-u").manifest("finetune")["prior"] is None
+    by = {r["row"]: r for r in data["rows"]}
+    assert math.isfinite(by["orm-wavelet-u-prior"]["repair_gain_db"]) and by["3dgs"]["repair_gain_db"] is None
+    assert "PSNR(orm-wavelet-u-prior) - PSNR(orm-wavelet-u)" in md
 
 
 def test_parse_rows_and_pareto():
-    assert [r.name for r in parse_rows("3dgs")] == ["orm-wavelet-u", "3dgs"]
+    assert [r.name for r in parse_rows("3dgs")] == ["orm-wavelet-u-prior", "3dgs"]
     assert [r.name for r in parse_rows("paper")][-1] == "3dgs"
     rows = [{"row": "a", "psnr": 20.0, "time_s": 10.0}, {"row": "b", "psnr": 21.0, "time_s": 20.0},
             {"row": "c", "psnr": 19.0, "time_s": 30.0}]

@@ -198,3 +198,19 @@ def test_colmap_image_name_escaping_or_not_utf8(tmp_path, blender_scene, name, n
     first = sorted(p.name for p in (scene / "images").iterdir())[0].encode()
     images_txt.write_bytes(data.replace(b" " + first + b"\n", b" " + name + b"\n", 1))
     expect_error(tmp_path, ["-q", "-w", tmp_path / "ws", "prepare", scene], needle.decode(), "sparse")
+
+
+@pytest.mark.parametrize("damage", ["truncated", "missing"])
+def test_damaged_or_missing_prior_weights(ws, tmp_path, damage):
+    from wgs.prior import WEIGHTS
+
+    prior = tmp_path / "prior"
+    shutil.copytree(WEIGHTS, prior)
+    w = prior / "D" / "model.safetensors"
+    if damage == "truncated":
+        w.write_bytes(w.read_bytes()[:100])
+    else:
+        w.unlink()
+    before = (ws / "3_finetune/manifest.json").read_text()
+    expect_error(ws.parent, wgs(ws, "finetune", "--force", "--prior", prior), "model.safetensors")
+    unchanged(ws, "3_finetune", before)

@@ -62,7 +62,7 @@ def test_workspace_contract_and_results(tiny):
     report = (ws.root / "6_eval/report.md").read_text()
     assert "| coarse |" in report and "| fine |" in report
     views = json.loads((ws.root / "4_repair/views.json").read_text())
-    assert len(views["views"]) == 8 and views["used_u"] is True
+    assert len(views["views"]) == 16 and views["used_u"] is True  # RepairConfig.num_views over the sphere
     assert all(0 < v["weight"] <= 1 for v in views["views"])
 
 

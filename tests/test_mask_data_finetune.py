@@ -77,12 +77,18 @@ def test_finetune_trains_and_saves_d_and_u(coarse_ws, tmp_path):
     D, cfg = load_model(d / "D")
     U, _ = load_model(d / "U")
     assert cfg["domain"] == "wavelet"
+    # the default starts from the shipped prior: D repairs in one step from the render
+    assert cfg["start"] == "corrupted" and ws.manifest("finetune")["prior"].endswith("weights")
     curves = json.loads((d / "curves.json").read_text())
     assert len(curves["D"]["loss"]) > 0 and "val" in curves["U"]
     assert (d / "curves.png").stat().st_size > 1000
     m = ws.manifest("finetune")
     for k in ("l1_before", "l1_after", "psnr_before", "psnr_after"):
         assert torch.isfinite(torch.tensor(m["heldout"][k]))
+    # --prior none: today's from-scratch denoising D (SDEdit at repair time), its own width
+    invoke("-w", str(ws.root), "finetune", "--preset", "fast", "--d-steps", "10", "--prior", "none")
+    cfg = load_model(d / "D")[1]
+    assert "start" not in cfg and cfg["channels"] == 16 and ws.manifest("finetune")["prior"] is None
     # RGB-domain D for the ablation: no U
     invoke("-w", str(ws.root), "finetune", "--preset", "fast", "--d-steps", "10", "--domain", "rgb")
     assert not (d / "U").exists() and load_model(d / "D")[1]["domain"] == "rgb"

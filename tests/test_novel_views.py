@@ -4,7 +4,7 @@ import torch
 from conftest import make_scene
 
 from wgs.scene.dataset import Frame
-from wgs.scene.orbit import look_at, novel_views
+from wgs.scene.orbit import look_at, novel_views, sphere_views
 
 
 def ring(n=4, radius=1.0, height=0.3):
@@ -32,6 +32,39 @@ def test_novel_views_between_neighbours_look_at_centre():
         fwd = f.viewmat[2, :3]
         torch.testing.assert_close(fwd, -c / c.norm(), atol=1e-5, rtol=0)  # looks at the origin
         assert dist > 0.05
+
+
+def test_sphere_views_cover_a_band_at_the_training_distance():
+    import math
+
+    import numpy as np
+
+    from wgs.scene.orbit import fit_orbit
+
+    train = ring(radius=1.0, height=0.3)  # cameras near elevation atan(0.3) = 16.7 degrees
+    views = sphere_views(train, 24, below_deg=15, above_deg=25)
+    up = torch.tensor(fit_orbit(train).up, dtype=torch.float32)
+
+    def elevation(c):
+        return math.degrees(math.asin(float(c @ up / c.norm())))
+
+    t_elev = [elevation(t.center) for t in train]
+    assert np.ptp(t_elev) < 5
+    assert len(views) == 24 and len({f.name for f, _ in views}) == 24
+    elev = []
+    for f, dist in views:
+        c = f.center
+        assert abs(float(c.norm()) - float(train[0].center.norm())) < 1e-4
+        torch.testing.assert_close(f.viewmat[2, :3], -c / c.norm(), atol=1e-5, rtol=0)  # looks at the origin
+        near = min(float((c - t.center).norm()) for t in train)
+        assert abs(dist - near) < 1e-5
+        elev.append(elevation(c))
+    lo, hi = min(t_elev) - 15, max(t_elev) + 25
+    assert lo - 1e-3 <= min(elev) and max(elev) <= hi + 1e-3
+    assert max(elev) - min(elev) > 0.8 * (hi - lo)  # the band is covered, not one ring
+    # azimuths spread: every quadrant has views
+    quads = {(float(f.center[0]) > 0, float(f.center[1]) > 0) for f, _ in views}
+    assert len(quads) == 4
 
 
 def test_novel_views_do_not_depend_on_test_cameras(tmp_path):

@@ -98,6 +98,11 @@ class FinetuneConfig:
     lora_steps: int = 500
     lora_crop: int = 64
     use_u: bool = True
+    prior: str = "builtin"  # builtin: the prior shipped in wgs/prior/weights; none: from scratch; or a folder
+    prior_steps: int = 300  # per-object fine-tune of the prior D (early-stopped on held-out pairs)
+    prior_lr: float = 5e-5
+    prior_eval_every: int = 25
+    prior_patience: int = 4
     train_timesteps: int = 1000
     d_channels: int = 32  # base width; the U-Net uses (c, 2c, 2c)
     d_steps: int = 1500
@@ -119,7 +124,9 @@ class FinetuneConfig:
 
 @dataclass
 class RepairConfig:
-    views_per_train: int = 2  # novel viewpoints per training view (spread over neighbour pairs)
+    poses: str = "sphere"  # sphere: a Fibonacci band over the view sphere; arc: between neighbouring training views
+    num_views: int = 16  # sphere: pseudo views in all
+    views_per_train: int = 2  # arc: novel viewpoints per training view (spread over neighbour pairs)
     arc_min: float = 0.3  # fraction of the arc between neighbouring training cameras
     arc_max: float = 0.7
     strength: float = 0.5  # SDEdit: noise level the corrupted image is taken to before denoising
@@ -138,6 +145,7 @@ class FineConfig(TrainConfig):
     pseudo_until: float = 0.7
     pseudo_every: int = 2  # one pseudo-view step every k iterations
     lpips_weight: float = 0.1  # LPIPS (VGG) on the pseudo views, used when its weights are on this machine
+    rounds: int = 2  # > 1: the pseudo views are rendered from the refined model, repaired again, trained again
 
 
 @dataclass
@@ -145,6 +153,7 @@ class EvalConfig:
     lpips_net: str = "alex"  # alex | vgg
     lpips_weights: str | None = None  # folder; also $WGS_LPIPS_WEIGHTS, $TORCH_HOME/hub/checkpoints
     max_views: int | None = None  # evaluate on the first k test views only
+    repair_gain: bool = True  # also repair G_c's renders at the test poses and score them (the repair's own gain)
 
 
 STAGES: dict[str, type] = {"prepare": PrepareConfig, "coarse": CoarseConfig, "mask_data": MaskDataConfig,
@@ -160,7 +169,7 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
         "coarse": {**_FAST_TRAIN, "iterations": 400, "refine_stop": 300},
         "mask_data": {**_FAST_TRAIN, "iterations": 300, "refine_stop": 250, "warmup": 100, "pair_every": 40,
                       "drift_period": 100.0},
-        "finetune": {"d_steps": 300, "u_max_steps": 300, "d_channels": 16, "u_eval_every": 25},
+        "finetune": {"d_steps": 300, "u_max_steps": 300, "d_channels": 16, "u_eval_every": 25, "prior_steps": 100},
         "repair": {"steps": 5},
         "fine": {**_FAST_TRAIN, "iterations": 300, "refine_start": 50, "refine_stop": 200},
     },
@@ -251,6 +260,7 @@ def as_dict(cfg: Any) -> dict[str, Any]:
 
 
 CHOICES: dict[str, tuple[str, ...]] = {"strategy": ("orm", "offline-rm", "loo"), "domain": ("wavelet", "rgb"),
+                                       "poses": ("sphere", "arc"),
                                        "lpips_net": ("alex", "vgg"), "diffusion": ("embedded", "controlnet")}
 
 

@@ -67,7 +67,8 @@ def run_all(ctx, scene_dir: Path, preset: str | None, force: bool, force_repair:
             "--force-repair runs it)")
         outcomes += [StageOutcome(s, "left out", 0.0, f"{n_train} views") for s in REPAIR_STAGES]
     if n_test:
-        step("eval", run_eval, ws, cfg("eval"), device, force=force, final="fine" if repair else "coarse")
+        step("eval", run_eval, ws, cfg("eval"), device, force=force, final="fine" if repair else "coarse",
+             seed=ctx.seed)
     else:
         log("left out: no test views -> no eval, no report numbers")
         outcomes.append(StageOutcome("eval", "left out", 0.0, "no test views"))

@@ -46,7 +46,7 @@ UPSTREAM: dict[str, tuple[str, ...]] = {
     "mask_data": ("scene", "coarse"),
     "finetune": ("coarse", "mask_data"),
     "repair": ("scene", "coarse", "finetune"),
-    "fine": ("scene", "coarse", "repair"),
+    "fine": ("scene", "coarse", "finetune", "repair"),  # finetune: later rounds repair again
     "eval": ("scene", "coarse", "fine"),
 }
 COMMANDS = {"scene": "prepare", "coarse": "coarse", "mask_data": "mask-data", "finetune": "finetune",

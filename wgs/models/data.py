@@ -5,7 +5,6 @@ from __future__ import annotations
 import torch
 
 from ..errors import InputError
-from ..wavelet.exr import read_subbands
 from ..wavelet.haar import dwt2
 from ..workspace import Workspace, read_json
 
@@ -37,6 +36,8 @@ def load_pairs(ws: Workspace, domain: str, levels: int = 1) -> tuple[torch.Tenso
 
     wavelet: the LL subband at `levels` (level 1 from the stored LL pairs, deeper levels from the
     stored RGB pairs); rgb: the images."""
+    from ..wavelet.exr import read_subbands  # OpenImageIO only where pair files are read
+
     index_path = ws.stage_dir("mask_data") / "index.json"
     index = read_json(index_path)
     pairs = index.get("pairs", [])

@@ -20,3 +20,14 @@ def sdedit_repair(model: torch.nn.Module, scheduler: DDIMScheduler, corrupted: t
         out = model(x, torch.full((x.shape[0],), t, device=x.device), corrupted)
         x = scheduler.step(out, t, x, prediction=getattr(model, "prediction", "v"))
     return x
+
+
+def single_step(model: torch.nn.Module, scheduler: DDIMScheduler, corrupted: torch.Tensor, t: int,
+                generator: torch.Generator | None = None) -> torch.Tensor:
+    """Difix-style repair by a model trained from the render (`start: corrupted`): the render
+    noised to level t (t = 0: the render itself, deterministic), one prediction of the clean sample."""
+    x = corrupted
+    if t > 0:
+        noise = torch.randn(corrupted.shape, generator=generator).to(corrupted)
+        x = scheduler.add_noise(corrupted, noise, torch.full((corrupted.shape[0],), t))
+    return model(x, torch.full((x.shape[0],), t, device=x.device), corrupted)

@@ -103,3 +103,31 @@ def novel_views(train: list[Frame], per_pair: int, lo: float = 0.3, hi: float = 
             dist = min(float(np.linalg.norm(eye - c)) for c in centers)
             out.append((frame, dist))
     return out
+
+
+def sphere_views(train: list[Frame], n: int, below_deg: float = 15.0, above_deg: float = 25.0
+                 ) -> list[tuple[Frame, float]]:
+    """n viewpoints spread evenly (Fibonacci lattice) over a band of the sphere around the object at
+    the training cameras' mean distance, from `below_deg` under the lowest training camera to
+    `above_deg` over the highest (elevation about the fitted up axis, within -80..85 degrees);
+    each looks at the object centre with the nearest training camera's intrinsics. Returns
+    (frame, distance to the nearest training camera centre)."""
+    orb = fit_orbit(train)
+    centers = np.stack([f.center.double().numpy() for f in train])
+    dist = float(np.linalg.norm(centers, axis=1).mean())
+    elev = np.degrees(np.arcsin(np.clip(centers @ orb.up / np.linalg.norm(centers, axis=1), -1, 1)))
+    lo = math.radians(max(-80.0, float(elev.min()) - below_deg))
+    hi = math.radians(min(85.0, float(elev.max()) + above_deg))
+    golden = math.pi * (3.0 - math.sqrt(5.0))
+    out = []
+    for i in range(n):
+        s = math.sin(lo) + (math.sin(hi) - math.sin(lo)) * (i + 0.5) / n  # uniform in area over the band
+        c = math.sqrt(max(0.0, 1 - s * s))
+        a = golden * i
+        eye = dist * (s * orb.up + c * (math.cos(a) * orb.e1 + math.sin(a) * orb.e2))
+        d = np.linalg.norm(centers - eye, axis=1)
+        near = train[int(d.argmin())]
+        w2c = look_at(eye, np.zeros(3), orb.up)
+        out.append((Frame(f"sphere_{i:03d}.png", near.K.clone(), torch.tensor(w2c, dtype=torch.float32), near.width,
+                          near.height), float(d.min())))
+    return out

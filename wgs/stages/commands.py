@@ -54,40 +54,51 @@ def register(cli, stage_common, workspace_option) -> None:
     @click.option("--sd-model", type=click.Path(path_type=str), default=None, help="Local Stable Diffusion 1.5 folder.")
     @click.option("--controlnet", type=click.Path(path_type=str), default=None, help="Local ControlNet-tile folder.")
     @click.option("--u-max-steps", type=int, default=None, help="Step limit of U (early stopping ends it sooner).")
+    @click.option("--prior", default=None, metavar="builtin|none|DIR",
+                  help="Start D and U from the pretrained repair prior (builtin, the default), train them from "
+                       "scratch (none), or from a prior folder with D/ and U/.")
     @stage_common
     @click.pass_obj
-    def finetune(obj, domain, no_u, levels, d_steps, diffusion, sd_model, controlnet, u_max_steps, force, preset):
-        """Train the repair diffusion model D and the HF U-Net U."""
+    def finetune(obj, domain, no_u, levels, d_steps, diffusion, sd_model, controlnet, u_max_steps, prior, force,
+                 preset):
+        """Fine-tune the repair model D (from the pretrained prior) and the HF U-Net U on this object."""
         from .s3_finetune import run_finetune
 
         cfg = obj.config("finetune", preset, domain=domain, use_u=False if no_u else None, levels=levels,
                          d_steps=d_steps, u_max_steps=u_max_steps, diffusion=diffusion, sd_model=sd_model,
-                         controlnet=controlnet)
+                         controlnet=controlnet, prior=prior)
         run_finetune(obj.ws(), cfg, obj.torch_device(), obj.seed, force=force)
 
     @cli.command()
-    @click.option("--strength", type=float, default=None, help="SDEdit strength (noise level) of D's repair.")
-    @click.option("--steps", type=int, default=None, help="DDIM steps of D's repair.")
-    @click.option("--views-per-train", type=int, default=None, help="Novel viewpoints per training view.")
+    @click.option("--poses", type=click.Choice(["sphere", "arc"]), default=None,
+                  help="Pseudo viewpoints: a band over the view sphere (default) or arcs between training views.")
+    @click.option("--num-views", type=int, default=None, help="Pseudo views in all (sphere poses).")
+    @click.option("--strength", type=float, default=None,
+                  help="SDEdit strength (noise level) of a from-scratch D's repair (a prior's D runs one step).")
+    @click.option("--steps", type=int, default=None, help="DDIM steps of a from-scratch D's repair.")
+    @click.option("--views-per-train", type=int, default=None, help="Novel viewpoints per training view (arc poses).")
     @stage_common
     @click.pass_obj
-    def repair(obj, strength, steps, views_per_train, force, preset):
+    def repair(obj, poses, num_views, strength, steps, views_per_train, force, preset):
         """Render G_c at novel views and repair them with D and U -> pseudo references."""
         from .s4_repair import run_repair
 
-        cfg = obj.config("repair", preset, strength=strength, steps=steps, views_per_train=views_per_train)
+        cfg = obj.config("repair", preset, poses=poses, num_views=num_views, strength=strength, steps=steps,
+                         views_per_train=views_per_train)
         run_repair(obj.ws(), cfg, obj.torch_device(), obj.seed, force=force)
 
     @cli.command()
-    @click.option("--iterations", type=int, default=None, help="Training iterations.")
+    @click.option("--iterations", type=int, default=None, help="Training iterations (per round).")
+    @click.option("--rounds", type=int, default=None,
+                  help="Rounds of repair + refinement: each later one repairs the refined model's renders again.")
     @stage_common
     @click.pass_obj
-    def fine(obj, iterations, force, preset):
+    def fine(obj, iterations, rounds, force, preset):
         """Refine G_c into G_f on the real and the pseudo references."""
         from .s5_fine import run_fine
 
-        run_fine(obj.ws(), obj.config("fine", preset, iterations=iterations), obj.torch_device(), obj.seed,
-                 force=force)
+        run_fine(obj.ws(), obj.config("fine", preset, iterations=iterations, rounds=rounds), obj.torch_device(),
+                 obj.seed, force=force)
 
     @cli.command("eval")
     @click.option("--lpips-net", type=click.Choice(["alex", "vgg"]), default=None, help="LPIPS backbone.")
@@ -102,7 +113,7 @@ def register(cli, stage_common, workspace_option) -> None:
 
         final = "fine" if obj.ws().manifest("fine") is not None else "coarse"
         cfg = obj.config("eval", preset, lpips_net=lpips_net, lpips_weights=lpips_weights, max_views=max_views)
-        run_eval(obj.ws(), cfg, obj.torch_device(), force=force, final=final)
+        run_eval(obj.ws(), cfg, obj.torch_device(), force=force, final=final, seed=obj.seed)
 
     @cli.command("all")
     @click.argument("scene", type=click.Path(path_type=Path))
@@ -112,10 +123,12 @@ def register(cli, stage_common, workspace_option) -> None:
                   help="Pair generation of mask-data.")
     @click.option("--domain", type=click.Choice(["wavelet", "rgb"]), default=None, help="Domain of D.")
     @click.option("--no-u", "no_u", is_flag=True, default=None, help="Do not train or use the HF U-Net.")
+    @click.option("--prior", default=None, metavar="builtin|none|DIR",
+                  help="Repair prior of D and U: builtin (default), none (from scratch), or a folder.")
     @click.option("--force-repair", is_flag=True, help="Run the repair stages even with many training views.")
     @stage_common
     @click.pass_obj
-    def all_(obj, scene, views, downscale, strategy, domain, no_u, force_repair, force, preset):
+    def all_(obj, scene, views, downscale, strategy, domain, no_u, prior, force_repair, force, preset):
         """Run every stage on SCENE (each skipped when up to date) and print the summary."""
         from ..pipeline import print_summary, run_all
 
@@ -123,7 +136,7 @@ def register(cli, stage_common, workspace_option) -> None:
             obj.workspace = Path(scene).with_name(Path(scene).name + "_wgs")
             log(f"workspace: {obj.workspace}")
         overrides = {"prepare": {"views": views, "downscale": downscale}, "mask_data": {"strategy": strategy},
-                     "finetune": {"domain": domain, "use_u": False if no_u else None}}
+                     "finetune": {"domain": domain, "use_u": False if no_u else None, "prior": prior}}
         outcomes = run_all(obj, scene, preset, force, force_repair, overrides)
         print_summary(obj.ws(), outcomes)
 

@@ -4,7 +4,6 @@ U-Net U (early stopping), each saved as config.json + model.safetensors under `3
 from __future__ import annotations
 
 import copy
-import math
 import time
 from pathlib import Path
 from typing import Any
@@ -12,14 +11,16 @@ from typing import Any
 import torch
 
 from ..config import FinetuneConfig, as_dict
-from ..errors import InputError, WgsError
+from ..errors import InputError
 from ..metrics import psnr
 from ..models.data import hwc, load_pairs, random_crops
 from ..models.hf_unet import HFUNet, HFUNetConfig
 from ..models.ll_denoiser import LLDenoiser, LLDenoiserConfig
-from ..models.sampling import sdedit_repair
+from ..models.optim import clipped_step
+from ..models.sampling import sdedit_repair, single_step
 from ..models.scheduler import DDIMScheduler
-from ..models.storage import save_model
+from ..models.storage import load_model, save_model
+from ..prior import WEIGHTS as PRIOR_WEIGHTS
 from ..progress import log, progress_bar
 from ..resume import Checkpointer, check_interrupt, deferred_sigint, rng_state, set_rng_state
 from ..wavelet.exr import read_subbands
@@ -65,16 +66,7 @@ def train_denoiser(cfg: FinetuneConfig, clean: torch.Tensor, bad: torch.Tensor, 
             t = torch.randint(cfg.train_timesteps, (x0.shape[0],), generator=gen)
             noise = torch.randn(x0.shape, generator=gen).to(device)
             loss = torch.nn.functional.mse_loss(model(sched.add_noise(x0, noise, t), t.to(device), c), x0)
-            if not math.isfinite(loss.item()):
-                raise WgsError(f"finetune D: the training loss became non-finite at step {step}; nothing was saved")
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
-            opt.step()
-            with torch.no_grad():
-                for pe, pm in zip(ema.parameters(), model.parameters(), strict=True):
-                    pe.lerp_(pm, 1 - cfg.ema_decay)
-            acc += loss.item()
+            acc += clipped_step(opt, model, loss, "finetune D", step, ema, cfg.ema_decay)
             if step % 25 == 0 or step == cfg.d_steps:
                 n = 25 if step % 25 == 0 else step % 25
                 curve["step"].append(step)
@@ -112,21 +104,24 @@ def hf_batch(render: torch.Tensor, ref: torch.Tensor) -> tuple[torch.Tensor, tor
 
 
 def train_hf_unet(cfg: FinetuneConfig, renders: torch.Tensor, refs: torch.Tensor, device: torch.device,
-                  gen: torch.Generator, checkpoint: Checkpointer | None = None) -> tuple[HFUNet, dict[str, Any]]:
+                  gen: torch.Generator, checkpoint: Checkpointer | None = None, init: HFUNet | None = None
+                  ) -> tuple[HFUNet, dict[str, Any]]:
     """L1 on HF subbands of augmented crops; early stopping on held-out crops (a held-out view when
-    there are 3 or more, else fixed crops)."""
+    there are 3 or more, else fixed crops). init: start from these weights (the prior's U); the
+    starting model stays the best until a step beats it."""
     n = renders.shape[0]
     val_ids = torch.tensor([n - 1]) if n >= 3 else torch.arange(n)
     train_ids = torch.arange(n - 1) if n >= 3 else torch.arange(n)
     vgen = torch.Generator().manual_seed(1234)
     val = random_crops([renders, refs], val_ids.repeat(8), 2 * cfg.u_crop, vgen, align=2)
     v_hc, v_ll, v_hr = (t.to(device) for t in hf_batch(*val))
-    model = HFUNet(HFUNetConfig(channels=cfg.u_channels)).to(device)
-    opt = torch.optim.Adam(model.parameters(), lr=cfg.u_lr)
+    model = (init if init is not None else HFUNet(HFUNetConfig(channels=cfg.u_channels))).to(device).train()
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.u_lr if init is None else cfg.u_lr * 0.1)
     with torch.no_grad():
         identity = (v_hc - v_hr).abs().mean().item()
-    # the zero-initialised U is the identity repair: it stays the best until a step beats it
-    st: dict[str, Any] = {"curve": {"step": [], "train": [], "val": []}, "best": identity,
+        start = (model(v_hc, v_ll) - v_hr).abs().mean().item()
+    # the starting U (zero-initialised: the identity repair) stays the best until a step beats it
+    st: dict[str, Any] = {"curve": {"step": [], "train": [], "val": []}, "best": start,
                           "best_state": copy.deepcopy(model.state_dict()), "bad_evals": 0,
                           "stopped": cfg.u_max_steps, "acc": 0.0, "step": 0, "finished": False}
     if checkpoint is not None and (saved := checkpoint.load()) is not None:
@@ -174,17 +169,78 @@ def train_hf_unet(cfg: FinetuneConfig, renders: torch.Tensor, refs: torch.Tensor
                 break
             check_interrupt("finetune U", step, checkpoint, snapshot)
     model.load_state_dict(st["best_state"])
-    curve.update({"best_val": st["best"], "identity_val": identity, "stopped_at": st["stopped"]})
+    curve.update({"best_val": st["best"], "identity_val": identity, "start_val": start, "stopped_at": st["stopped"]})
     return model.eval(), curve
 
 
-def heldout_check(cfg: FinetuneConfig, model: LLDenoiser, clean: torch.Tensor, bad: torch.Tensor,
-                  device: torch.device) -> dict[str, float]:
-    """Error of held-out corrupted samples against the clean ones, before and after D's repair."""
-    sched = DDIMScheduler(cfg.train_timesteps)
+def prior_folder(cfg: FinetuneConfig) -> Path | None:
+    """Where the pretrained D and U come from: the shipped prior, a folder, or none (from scratch).
+    Only the LL-domain embedded D at one Haar level has a prior."""
+    if cfg.prior == "none" or cfg.domain != "wavelet" or cfg.levels != 1 or cfg.diffusion != "embedded":
+        return None
+    return PRIOR_WEIGHTS if cfg.prior == "builtin" else Path(cfg.prior)
+
+
+def finetune_prior_d(cfg: FinetuneConfig, prior: Path, clean: torch.Tensor, bad: torch.Tensor,
+                     held_clean: torch.Tensor, held_bad: torch.Tensor, device: torch.device, gen: torch.Generator
+                     ) -> tuple[LLDenoiser, dict[str, Any], dict[str, Any]]:
+    """The prior's D adapted to this object's pairs with its own objective (from the noised
+    render), early-stopped on the held-out pairs; the prior itself wins unless a step beats it."""
+    model, d_cfg = load_model(prior / "D", device)
+    if d_cfg.get("start") != "corrupted" or "t_max" not in d_cfg:
+        raise InputError("not a repair prior (its config lacks start = corrupted and t_max)",
+                         prior / "D" / "config.json")
+    sched = DDIMScheduler(d_cfg.get("train_timesteps", 1000))
+    held_clean, held_bad = held_clean.to(device), held_bad.to(device)
+
+    def val() -> float:
+        model.eval()
+        with torch.no_grad():
+            out = single_step(model, sched, held_bad, d_cfg.get("repair_t", 0))
+        model.train()
+        return float((out - held_clean).pow(2).mean())
+
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.prior_lr, weight_decay=0.0)
+    best = start = val()
+    best_state, bad_evals, stopped = copy.deepcopy(model.state_dict()), 0, cfg.prior_steps
+    curve: dict[str, Any] = {"step": [0], "loss": [], "val": [start]}
+    with progress_bar("finetune D (prior)", cfg.prior_steps) as prog:
+        for step in range(1, cfg.prior_steps + 1):
+            idx = torch.randint(clean.shape[0], (cfg.d_batch,), generator=gen)
+            x0, c = (t.to(device) for t in random_crops([clean, bad], idx, cfg.d_crop, gen))
+            t = torch.randint(d_cfg["t_max"], (x0.shape[0],), generator=gen)
+            noise = torch.randn(c.shape, generator=gen).to(device)
+            loss = torch.nn.functional.mse_loss(model(sched.add_noise(c, noise, t), t.to(device), c), x0)
+            curve["loss"].append(clipped_step(opt, model, loss, "finetune D", step))
+            if step % cfg.prior_eval_every == 0:
+                v = val()
+                curve["step"].append(step)
+                curve["val"].append(v)
+                prog.update(0, completed=step, status=f"held-out MSE {v:.5f} (prior {start:.5f})")
+                if v < best - 1e-9:
+                    best, best_state, bad_evals = v, copy.deepcopy(model.state_dict()), 0
+                else:
+                    bad_evals += 1
+                    if bad_evals >= cfg.prior_patience:
+                        stopped = step
+                        break
+    model.load_state_dict(best_state)
+    curve.update({"prior_val": start, "best_val": best, "stopped_at": stopped})
+    extra = {k: d_cfg[k] for k in ("domain", "levels", "train_timesteps", "start", "t_max", "repair_t") if k in d_cfg}
+    return model.eval(), {**extra, "prior": str(prior)}, curve
+
+
+def heldout_check(cfg: FinetuneConfig, model: LLDenoiser, d_cfg: dict[str, Any], clean: torch.Tensor,
+                  bad: torch.Tensor, device: torch.device) -> dict[str, float]:
+    """Error of held-out corrupted samples against the clean ones, before and after D's repair
+    (the way `wgs repair` runs this D)."""
+    sched = DDIMScheduler(d_cfg.get("train_timesteps", cfg.train_timesteps))
     with torch.no_grad():
-        rep = sdedit_repair(model, sched, bad.to(device), cfg.eval_strength, cfg.eval_steps,
-                            torch.Generator().manual_seed(0)).cpu()
+        if d_cfg.get("start") == "corrupted":
+            rep = single_step(model, sched, bad.to(device), d_cfg.get("repair_t", 0)).cpu()
+        else:
+            rep = sdedit_repair(model, sched, bad.to(device), cfg.eval_strength, cfg.eval_steps,
+                                torch.Generator().manual_seed(0)).cpu()
     scale = 2.0  # model space [-1, 1] spans a range of 2
     return {"num_samples": int(clean.shape[0]),
             "l1_before": float((bad - clean).abs().mean()), "l1_after": float((rep - clean).abs().mean()),
@@ -199,8 +255,12 @@ def plot_curves(path, curves: dict[str, Any]) -> None:
 
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.2))
     d = curves["D"]
-    axes[0].plot(d["step"], d["loss"])
-    axes[0].set(title="D (clean-image MSE)", xlabel="step", yscale="log")
+    if "prior_val" in d:  # a fine-tuned prior: its held-out error, step 0 = the prior as shipped
+        axes[0].plot(d["step"], d["val"], label="held-out")
+        axes[0].set(title="D from the prior (held-out MSE)", xlabel="step")
+    else:
+        axes[0].plot(d["step"], d["loss"])
+        axes[0].set(title="D (clean-image MSE)", xlabel="step", yscale="log")
     if "U" in curves:
         u = curves["U"]
         axes[1].plot(u["step"], u["train"], label="train")
@@ -269,24 +329,33 @@ def train_and_save(run: StageRun, ws: Workspace, cfg: FinetuneConfig, clean, bad
                                   "d_seconds": round(time.perf_counter() - t0, 2), "num_pairs": int(clean.shape[0])}
         curves: dict[str, Any] = {}
         return finish_with_u(run, ws, cfg, record, curves, device, gen)
-    d_model, d_curve = train_denoiser(cfg, clean[train_ids], bad[train_ids], device, gen, run.checkpointer("d"))
-    d_seconds = time.perf_counter() - t0
-    save_model(run.dir / "D", d_model, {"domain": cfg.domain, "levels": cfg.levels,
-                                        "train_timesteps": cfg.train_timesteps})
     ids = held if len(held) else train_ids
+    prior = prior_folder(cfg)
+    if prior is not None:
+        d_model, d_extra, d_curve = finetune_prior_d(cfg, prior, clean[train_ids], bad[train_ids], clean[ids],
+                                                     bad[ids], device, gen)
+    else:
+        d_model, d_curve = train_denoiser(cfg, clean[train_ids], bad[train_ids], device, gen, run.checkpointer("d"))
+        d_extra = {"domain": cfg.domain, "levels": cfg.levels, "train_timesteps": cfg.train_timesteps}
+    d_seconds = time.perf_counter() - t0
+    save_model(run.dir / "D", d_model, d_extra)
     record: dict[str, Any] = {"domain": cfg.domain, "levels": cfg.levels, "d_seconds": round(d_seconds, 2),
-                              "d_final_loss": d_curve["loss"][-1], "num_pairs": int(clean.shape[0]),
-                              "heldout": heldout_check(cfg, d_model, clean[ids], bad[ids], device)}
+                              "d_final_loss": d_curve["loss"][-1] if d_curve["loss"] else None,
+                              "num_pairs": int(clean.shape[0]), "prior": None if prior is None else str(prior),
+                              "heldout": heldout_check(cfg, d_model, d_extra, clean[ids], bad[ids], device)}
+    if prior is not None:
+        record["d_stopped_at"] = d_curve["stopped_at"]
     curves: dict[str, Any] = {"D": d_curve}
-    return finish_with_u(run, ws, cfg, record, curves, device, gen)
+    return finish_with_u(run, ws, cfg, record, curves, device, gen, prior)
 
 
 def finish_with_u(run: StageRun, ws: Workspace, cfg: FinetuneConfig, record: dict[str, Any], curves: dict[str, Any],
-                  device: torch.device, gen: torch.Generator) -> dict[str, Any]:
+                  device: torch.device, gen: torch.Generator, prior: Path | None = None) -> dict[str, Any]:
     if cfg.domain == "wavelet" and cfg.use_u:
         t1 = time.perf_counter()
         renders, refs, _ = load_hf_data(ws)
-        u_model, u_curve = train_hf_unet(cfg, renders, refs, device, gen, run.checkpointer("u"))
+        init = load_model(prior / "U", device)[0] if prior is not None else None
+        u_model, u_curve = train_hf_unet(cfg, renders, refs, device, gen, run.checkpointer("u"), init)
         record.update({"u_seconds": round(time.perf_counter() - t1, 2), "u_best_val": u_curve["best_val"],
                        "u_identity_val": u_curve["identity_val"], "u_stopped_at": u_curve["stopped_at"]})
         save_model(run.dir / "U", u_model)

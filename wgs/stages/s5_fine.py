@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import torch
 
-from ..config import FineConfig, as_dict
+from ..config import FineConfig, RepairConfig, as_dict
 from ..gaussians.splats import export_ply, load_checkpoint, save_checkpoint, to_world
-from ..gaussians.trainer import PseudoViews, train_gaussians
+from ..gaussians.trainer import PseudoViews, render_frame, train_gaussians
 from ..progress import log
 from ..scene.dataset import Frame, load_prepared
 from ..wavelet.exr import read_subbands
@@ -39,6 +39,24 @@ def load_pseudo_views(ws: Workspace) -> tuple[list[Frame], list[float]]:
     return frames, weights
 
 
+def repaired_again(ws: Workspace, splats, frames: list[Frame], background: torch.Tensor, device: torch.device,
+                   seed: int) -> list[Frame]:
+    """The pseudo frames with images rendered from `splats` and repaired by this workspace's D and U
+    (the repair stage's settings): the next round's pseudo references."""
+    from ..models.repair import load_repairer, repair_image
+
+    manifest = ws.manifest("repair") or {}
+    rcfg = RepairConfig(**{k: v for k, v in (manifest.get("config") or {}).items()
+                           if k in RepairConfig.__dataclass_fields__})
+    repair_fn, U, d_cfg = load_repairer(ws.stage_dir("finetune"), rcfg, device, seed)
+    out = []
+    for f in frames:
+        render, _ = render_frame(splats, f, device, background)
+        fixed, _, _ = repair_image(render, repair_fn, U, d_cfg.get("domain", "wavelet"), device, d_cfg.get("levels", 1))
+        out.append(Frame(f.name, f.K, f.viewmat, f.width, f.height, fixed))
+    return out
+
+
 def lpips_for_training(cfg: FineConfig, device: torch.device):
     if cfg.lpips_weight <= 0:
         return None
@@ -60,15 +78,25 @@ def run_fine(ws: Workspace, cfg: FineConfig, device: torch.device, seed: int, fo
         scene = load_prepared(ws)
         splats, _ = load_checkpoint(ws.stage_dir("coarse") / CKPT, scene.norm)
         frames, weights = load_pseudo_views(ws)
-        pseudo = PseudoViews(frames, weights, pseudo_schedule(cfg), background_for(scene), cfg.pseudo_every,
-                             lpips_for_training(cfg, device), cfg.lpips_weight)
+        bg = background_for(scene)
+        lpips_fn = lpips_for_training(cfg, device)
         torch.manual_seed(seed)
         with ws.stage_run("fine", config, fp) as run:
-            res = train_gaussians(splats, scene.train, cfg, device, extent=1.0, desc="fine", seed=seed,
-                                  has_masks=scene.has_masks, pseudo=pseudo, checkpoint=run.checkpointer("gf"))
+            res = None
+            for r in range(1, max(1, cfg.rounds) + 1):
+                if res is not None:  # a later round: start from the refined model and its repaired renders
+                    splats = res.splats
+                    frames = repaired_again(ws, splats, frames, bg, device, seed)
+                pseudo = PseudoViews(frames, weights, pseudo_schedule(cfg), bg, cfg.pseudo_every, lpips_fn,
+                                     cfg.lpips_weight)
+                res = train_gaussians(splats, scene.train, cfg, device, extent=1.0,
+                                      desc="fine" if cfg.rounds == 1 else f"fine round {r}", seed=seed + r - 1,
+                                      has_masks=scene.has_masks, pseudo=pseudo,
+                                      checkpoint=run.checkpointer("gf" if r == 1 else f"gf{r}"))
             save_checkpoint(run.path(CKPT), res.splats, scene.norm, res.iterations)
             n = export_ply(run.path(PLY), to_world(res.splats, scene.norm))
             run.record.update({"num_gaussians": n, "iterations": res.iterations, "num_pseudo": len(frames),
+                               "rounds": max(1, cfg.rounds),
                                "train_seconds": round(res.seconds, 2), "final_loss": res.losses[-1], "seed": seed})
     log(f"fine: {n} Gaussians, {len(frames)} pseudo views, {res.seconds:.1f} s")
     return True

@@ -49,6 +49,31 @@ def evaluate_model(splats, frames, device, bg, lpips_fn, out_dir=None, desc="eva
     return per
 
 
+def measure_repair_gain(ws: Workspace, splats, frames, device, bg, seed: int) -> dict[str, Any]:
+    """PSNR of G_c's render and of its repair (D + U, as `wgs repair` runs them) against the truth
+    at the test poses: how much the repair itself fixes, before any 3D training on it."""
+    from ..config import RepairConfig
+    from ..models.repair import load_repairer, repair_image
+
+    rep_manifest = ws.manifest("repair") or {}
+    rcfg = RepairConfig(**{k: v for k, v in (rep_manifest.get("config") or {}).items()
+                           if k in RepairConfig.__dataclass_fields__})
+    repair_fn, U, d_cfg = load_repairer(ws.stage_dir("finetune"), rcfg, device, seed)
+    before, after = {}, {}
+    with progress_bar("eval repair gain", len(frames)) as prog:
+        for i, f in enumerate(frames):
+            rgb, _ = render_frame(splats, f, device, bg)
+            fixed, _, _ = repair_image(rgb, repair_fn, U, d_cfg.get("domain", "wavelet"), device,
+                                       d_cfg.get("levels", 1))
+            ref = composite(f.image, f.mask, bg)
+            before[f.name], after[f.name] = psnr(rgb, ref), psnr(fixed, ref)
+            prog.update(0, completed=i + 1)
+    gains = [after[k] - before[k] for k in before]
+    return {"psnr_render": statistics.fmean(before.values()), "psnr_repaired": statistics.fmean(after.values()),
+            "gain_db": statistics.fmean(gains), "gain_std": statistics.pstdev(gains),
+            "views_improved": sum(g > 0 for g in gains), "num_views": len(gains), "prior": d_cfg.get("prior")}
+
+
 def summarise(per: dict[str, dict[str, float]]) -> dict[str, float | None]:
     out: dict[str, float | None] = {}
     for m in ("psnr", "ssim", "lpips"):
@@ -114,7 +139,7 @@ def plot_error_vs_time(path, times, coarse, fine) -> None:
 
 
 def run_eval(ws: Workspace, cfg: EvalConfig, device: torch.device, force: bool = False,
-             final: str = "fine") -> bool:
+             final: str = "fine", seed: int = 0) -> bool:
     """Evaluate `final` (fine, or coarse when the repair stages were left out) and G_c."""
     config = as_dict(cfg)
     with ws.lock():
@@ -133,7 +158,7 @@ def run_eval(ws: Workspace, cfg: EvalConfig, device: torch.device, force: bool =
         bg = background_for(scene)
         with ws.stage_run("eval", config, fp) as run:
             t0 = time.perf_counter()
-            results = {}
+            results, gain = {}, None
             for key, st in (("fine", final), ("coarse", "coarse")):
                 if key == "coarse" and final == "coarse":
                     results["coarse"] = results["fine"]
@@ -144,7 +169,10 @@ def run_eval(ws: Workspace, cfg: EvalConfig, device: torch.device, force: bool =
                 atomic_write_json(run.path("per_view.json" if key == "fine" else "per_view_coarse.json"), per)
                 results[key] = {**summarise(per), "num_gaussians": int(splats["means"].shape[0]),
                                 "num_views": len(frames)}
+                if key == "coarse" and cfg.repair_gain and final == "fine" and ws.manifest("finetune"):
+                    gain = measure_repair_gain(ws, splats, frames, device, bg, seed)
             res = {**results["fine"], "final_model": final, "coarse": results["coarse"],
+                   "repair_gain": gain,
                    "lpips_net": cfg.lpips_net if lpips_fn else None,
                    "lpips_unavailable": lpips_note, "metrics": METRICS_DOC,
                    "lpips_weights": lpips_fn.sources if lpips_fn else None,
@@ -157,6 +185,9 @@ def run_eval(ws: Workspace, cfg: EvalConfig, device: torch.device, force: bool =
     c, f = results["coarse"], results["fine"]
     log(f"eval: PSNR {fmt(c['psnr'], 2)} -> {fmt(f['psnr'], 2)} dB, SSIM {fmt(c['ssim'])} -> {fmt(f['ssim'])}, "
         f"LPIPS {fmt(c['lpips'])} -> {fmt(f['lpips'])} (coarse -> fine, {len(frames)} test views)")
+    if gain is not None:
+        log(f"eval: repair gain at the test poses {gain['gain_db']:+.2f} dB (render {gain['psnr_render']:.2f} -> "
+            f"repaired {gain['psnr_repaired']:.2f} dB, {gain['views_improved']}/{gain['num_views']} views improved)")
     return True
 
 

@@ -1,0 +1,94 @@
+"""The repair of a render by the fine-tuned models: D on the LL subband (or RGB), U on the HF
+subbands, inverse DWT. Shared by `wgs repair` (pseudo references) and `wgs eval` (repair gain)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..config import RepairConfig
+from ..wavelet.haar import dwt2, idwt2, split_highs, stack_highs
+from .data import from_model, to_model
+from .sampling import sdedit_repair, single_step
+from .scheduler import DDIMScheduler
+from .storage import load_model
+
+
+def chw_to_hwc(x: torch.Tensor) -> np.ndarray:
+    return x[0].permute(1, 2, 0).float().numpy()
+
+
+RepairFn = Callable[[torch.Tensor], torch.Tensor]  # [B, 3, h, w] model space -> repaired, model space
+
+
+def embedded_repairer(D: torch.nn.Module, cfg: RepairConfig, d_cfg: dict, gen: torch.Generator,
+                      device: torch.device) -> RepairFn:
+    """SDEdit for a D trained by denoising; one step from the render for a prior-trained D."""
+    sched = DDIMScheduler(d_cfg.get("train_timesteps", 1000))
+    if d_cfg.get("start") == "corrupted":
+        return lambda x: single_step(D, sched, x.to(device), d_cfg.get("repair_t", 0), gen).cpu()
+    return lambda x: sdedit_repair(D, sched, x.to(device), cfg.strength, cfg.steps, gen).cpu()
+
+
+def controlnet_repairer(pipe, cfg: RepairConfig, seed: int) -> RepairFn:
+    """SD img2img + ControlNet on images in [0, 1], padded to a multiple of 8 and cropped back."""
+    from ..models import controlnet_lora as cl
+    from ..models.blocks import pad_to_multiple
+
+    def fn(x: torch.Tensor) -> torch.Tensor:
+        img, (h, w) = pad_to_multiple(((x + 1) / 2).clamp(0, 1), 8)
+        out = cl.repair(pipe, img.to(pipe.device), cfg.strength, cfg.steps, seed)
+        return out[..., :h, :w] * 2 - 1
+
+    return fn
+
+
+@torch.no_grad()
+def repair_image(render: torch.Tensor, repair_fn: RepairFn, U: torch.nn.Module | None, domain: str,
+                 device: torch.device, levels: int = 1
+                 ) -> tuple[torch.Tensor, dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """render [H, W, 3] -> pseudo reference [H, W, 3] and the corrupted / repaired subbands.
+
+    wavelet: D repairs LL_J; the coarser HF levels are kept, LL_1 is rebuilt from them, and U
+    repairs the finest HF level with LL_1 as context."""
+    x = render.permute(2, 0, 1)[None].double()
+    h, w = x.shape[-2:]
+    if domain == "rgb":
+        out = from_model(repair_fn(to_model(x.float(), "rgb")), "rgb").double()
+        bands_in = {"RGB": chw_to_hwc(x)}
+        bands_out = {"RGB": chw_to_hwc(out)}
+    else:
+        llJ, highs = dwt2(x, levels)
+        llJ_fixed = from_model(repair_fn(to_model(llJ.float(), "wavelet", levels)), "wavelet", levels).double()
+        size1 = tuple(highs[0][0].shape[-2:])
+        ll1 = idwt2(llJ, highs[1:], size=size1) if levels > 1 else llJ
+        ll1_fixed = idwt2(llJ_fixed, highs[1:], size=size1) if levels > 1 else llJ_fixed
+        hf = highs[0]
+        hf_fixed = hf
+        if U is not None:
+            hf_fixed = split_highs(U(stack_highs(hf).float().to(device), ll1.float().to(device)).cpu().double())
+        out = idwt2(ll1_fixed, [hf_fixed], size=(h, w))
+        names = ("LL", "LH", "HL", "HH")
+        bands_in = dict(zip(names, map(chw_to_hwc, (ll1, *hf)), strict=True))
+        bands_out = dict(zip(names, map(chw_to_hwc, (ll1_fixed, *hf_fixed)), strict=True))
+    return out[0].permute(1, 2, 0).clamp(0, 1).float(), bands_in, bands_out
+
+
+def load_repairer(folder: Path, cfg: RepairConfig, device: torch.device, seed: int
+                  ) -> tuple[RepairFn, torch.nn.Module | None, dict]:
+    """D's repair function, U (or None) and D's config from a finetune folder (D/ or D_lora/, U/)."""
+    gen = torch.Generator().manual_seed(seed)
+    if (folder / "D_lora").is_dir():
+        from .controlnet_lora import load_lora
+
+        pipe, d_cfg = load_lora(folder / "D_lora", device)
+        repair_fn = controlnet_repairer(pipe, cfg, seed)
+    else:
+        D, d_cfg = load_model(folder / "D", device)
+        repair_fn = embedded_repairer(D, cfg, d_cfg, gen, device)
+    u_dir = folder / "U"
+    U = load_model(u_dir, device)[0] if (d_cfg.get("domain", "wavelet") == "wavelet" and u_dir.is_dir()) else None
+    return repair_fn, U, d_cfg

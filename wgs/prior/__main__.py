@@ -1,0 +1,133 @@
+"""`python -m wgs.prior corpus|pairs|train`: rebuild the repair prior from fetched repositories.
+
+    python -m wgs.prior corpus --mirror /work/.mirror      # extract snapshots, render objects
+    python -m wgs.prior pairs --budget-min 60              # coarse runs -> (render, ref) pairs
+    python -m wgs.prior train                              # D and U -> wgs/prior/weights/
+
+Everything is resumable and lives in the cache folder (default ~/.cache/wgs-prior, or $WGS_PRIOR_CACHE).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import click
+
+DEFAULT_CACHE = Path(os.environ.get("WGS_PRIOR_CACHE", Path.home() / ".cache" / "wgs-prior"))
+
+
+@click.group()
+@click.option("--cache", type=click.Path(path_type=Path), default=DEFAULT_CACHE, show_default=True,
+              help="corpus, pairs and training state (outside the repository)")
+@click.pass_context
+def main(ctx: click.Context, cache: Path) -> None:
+    """Build the repair prior's corpus and pairs, and train it."""
+    ctx.obj = cache
+
+
+@main.command()
+@click.option("--mirror", type=click.Path(path_type=Path), default=Path("/work/.mirror"), show_default=True,
+              help="folder of fetched snapshots (owner+name/repo)")
+@click.option("--procedural", default=60, show_default=True, help="procedural objects")
+@click.option("--first-seed", default=0, show_default=True, help="seed (and name) of the first procedural object")
+@click.option("--limit", type=int, default=None, help="render at most this many objects")
+@click.option("--size", default=128, show_default=True, help="image size in pixels")
+@click.option("--workers", default=1, show_default=True, help="one-thread processes")
+@click.pass_obj
+def corpus(cache: Path, mirror: Path, procedural: int, first_seed: int, limit: int | None, size: int,
+           workers: int) -> None:
+    """Extract the snapshots and render every object into a Blender-format scene."""
+    from .corpus import build_corpus
+
+    done = build_corpus(mirror, cache, procedural, limit, size, first_procedural=first_seed, workers=workers)
+    click.echo(f"corpus: {len(done)} objects in {cache / 'objects'}")
+
+
+@main.command()
+@click.option("--iterations", default=800, show_default=True, help="coarse iterations per object")
+@click.option("--limit", type=int, default=None, help="objects at most")
+@click.option("--budget-min", type=float, default=None, help="stop after this many minutes (rerun continues)")
+@click.option("--workers", default=1, show_default=True, help="one-thread processes")
+@click.pass_obj
+def pairs(cache: Path, iterations: int, limit: int | None, budget_min: float | None, workers: int) -> None:
+    """Coarse 3DGS per object on sparse views; its renders at novel poses paired with the truth."""
+    from .pairs import build_pairs
+
+    n = build_pairs(cache, {"iterations": iterations}, limit, None if budget_min is None else budget_min * 60,
+                    workers)
+    click.echo(f"pairs: {n} new objects in {cache / 'pairs'}")
+
+
+@main.command()
+@click.option("--pack", type=click.Path(path_type=Path), default=None,
+              help="a training pack (default: pack the cache's pairs into CACHE/pack.npz first)")
+@click.option("--out", type=click.Path(path_type=Path), default=None, help="default: the package's weights/")
+@click.option("--device", default="auto", show_default=True, help="auto | cpu | cuda")
+@click.option("--d-steps", type=int, default=None, help="D training steps")
+@click.option("--u-steps", type=int, default=None, help="U training steps")
+@click.option("--pack-only", is_flag=True, help="write the pack and stop (to carry it to a GPU machine)")
+@click.pass_obj
+def train(cache: Path, pack: Path | None, out: Path | None, device: str, d_steps: int | None, u_steps: int | None,
+          pack_only: bool) -> None:
+    """Pretrain D and U on the pairs (held-out objects measure generalisation)."""
+    import json
+
+    import torch
+
+    from .train import WEIGHTS, PriorConfig, pack_pairs, train_prior
+
+    provenance = None
+    if pack is None:
+        pack = cache / "pack.npz"
+        provenance = pack_pairs(cache / "pairs", pack)
+        from .corpus import procedural_objects
+
+        corpus_doc = json.loads((cache / "corpus.json").read_text())
+        listed = {o["name"]: o for o in corpus_doc["objects"]}
+        provenance["snapshots"] = corpus_doc.get("snapshots", {})
+        used = sorted({n.rsplit("_v", 1)[0] for n in provenance["objects"]})
+        for n in used:  # procedural objects made elsewhere (another machine's cache) are known by their seed
+            if n not in listed and n.startswith("procedural-"):
+                listed[n] = procedural_objects(1, int(n.split("-")[1]))[0]
+        provenance["sources"] = [{k: listed[n].get(k) for k in ("name", "repo", "path", "licence", "kind", "seed")}
+                                 for n in used if n in listed]
+        (cache / "pack.json").write_text(json.dumps(provenance, indent=1))
+        click.echo(f"pack: {provenance['pairs']} pairs from {len(provenance['objects'])} objects -> {pack}")
+        if pack_only:
+            return
+    elif (pack.parent / "pack.json").is_file():
+        provenance = json.loads((pack.parent / "pack.json").read_text())
+    dev = torch.device("cuda" if device == "auto" and torch.cuda.is_available() else
+                       ("cpu" if device == "auto" else device))
+    cfg = PriorConfig()
+    cfg.d_steps = d_steps or cfg.d_steps
+    cfg.u_steps = u_steps or cfg.u_steps
+    rec = train_prior(pack, out or WEIGHTS, cfg, dev, provenance, log=lambda m: click.echo(m))
+    click.echo(f"prior: D {rec['d_seconds']} s, U {rec['u_seconds']} s on {dev}")
+
+
+@main.command()
+@click.option("--pack", type=click.Path(path_type=Path), required=True, help="a training pack")
+@click.option("--fractions", default="0.25,0.5,1.0", show_default=True, help="shares of the training objects")
+@click.option("--d-steps", default=4000, show_default=True, help="D training steps per point")
+@click.option("--device", default="auto", show_default=True, help="auto | cpu | cuda")
+@click.option("--out", type=click.Path(path_type=Path), default=None, help="write the rows as JSON here")
+def curve(pack: Path, fractions: str, d_steps: int, device: str, out: Path | None) -> None:
+    """Held-out repair gain of D against corpus size (same held-out objects for every point)."""
+    import json
+
+    import torch
+
+    from .train import PriorConfig, corpus_curve
+
+    dev = torch.device("cuda" if device == "auto" and torch.cuda.is_available() else
+                       ("cpu" if device == "auto" else device))
+    cfg = PriorConfig(d_steps=d_steps)
+    rows = corpus_curve(pack, [float(f) for f in fractions.split(",")], cfg, dev, log=lambda m: click.echo(m))
+    if out is not None:
+        out.write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,125 @@
+"""Real corruptions for the prior: per corpus object, our own prepare + coarse stages on a few
+views (chosen as `wgs prepare` chooses them), then G_c rendered at the object's novel poses and
+paired with the ground-truth renders there. One `pairs.npz` per object and sparsity; resumable.
+
+A pair file holds uint8 arrays: render [P, H, W, 3] and ref [P, H, W, 3] (on white, the way
+`wgs repair` sees them), render_alpha and ref_alpha [P, H, W], plus the pose distance to the
+nearest training camera [P] (float32).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..config import resolve
+from ..gaussians.splats import load_checkpoint
+from ..gaussians.trainer import render_frame
+from ..progress import log
+from ..scene.dataset import composite, load_prepared
+from ..workspace import Workspace
+
+SPARSITIES = (4, 6, 4, 3, 4, 5)  # cycled over objects: mostly 4 views, as the product default
+CKPT = "ckpt.pt"
+
+
+def to_u8(x: torch.Tensor | np.ndarray) -> np.ndarray:
+    return (np.asarray(x, np.float32).clip(0, 1) * 255 + 0.5).astype(np.uint8)
+
+
+def object_pairs(scene_dir: Path, work: Path, views: int, coarse_overrides: dict, seed: int = 0) -> dict:
+    """prepare + coarse on `views` views of the scene, then G_c at every test pose -> arrays."""
+    from ..stages.s0_prepare import run_prepare
+    from ..stages.s1_coarse import run_coarse
+
+    ws = Workspace(work)
+    t0 = time.perf_counter()
+    run_prepare(ws, scene_dir, resolve("prepare", cli={"views": views}))
+    run_coarse(ws, resolve("coarse", cli=coarse_overrides), torch.device("cpu"), seed)
+    scene = load_prepared(ws, load_test_images=True)
+    splats, _ = load_checkpoint(ws.stage_dir("coarse") / CKPT, scene.norm)
+    bg = torch.ones(3)
+    centres = torch.stack([f.center for f in scene.train])
+    out: dict[str, list] = {"render": [], "ref": [], "render_alpha": [], "ref_alpha": [], "distance": []}
+    for f in scene.test:
+        rgb, alpha = render_frame(splats, f, torch.device("cpu"), bg)
+        out["render"].append(to_u8(rgb))
+        out["render_alpha"].append(to_u8(alpha[..., 0]))
+        out["ref"].append(to_u8(composite(f.image, f.mask, bg)))
+        out["ref_alpha"].append(to_u8(f.mask if f.mask is not None else torch.ones(f.height, f.width)))
+        out["distance"].append(float((centres - f.center).norm(dim=1).min()))
+    arrays = {k: np.stack(v) for k, v in out.items()}
+    arrays["distance"] = arrays["distance"].astype(np.float32)
+    arrays["seconds"] = np.float32(time.perf_counter() - t0)
+    return arrays
+
+
+def build_pairs(cache: Path, coarse_overrides: dict, limit: int | None = None, budget_s: float | None = None,
+                workers: int = 1, shard: tuple[int, int] = (0, 1)) -> int:
+    """Pairs for every rendered corpus object without them yet; stops after budget_s seconds.
+    workers > 1: that many processes of one thread each, objects dealt out round-robin."""
+    if workers > 1:
+        return sum(in_processes(build_pairs, workers, cache, coarse_overrides, limit, budget_s))
+    listed = json.loads((cache / "corpus.json").read_text())["objects"]  # interleaved over the sources
+    t0 = time.perf_counter()
+    made = 0
+    for i, meta in enumerate(listed[:limit]):
+        if i % shard[1] != shard[0]:
+            continue
+        meta_path = cache / "objects" / meta["name"] / "object.json"
+        views = SPARSITIES[i % len(SPARSITIES)]
+        out = cache / "pairs" / f"{meta['name']}_v{views}.npz"
+        if out.is_file():
+            continue
+        if budget_s is not None and time.perf_counter() - t0 > budget_s:
+            log(f"pairs: budget of {budget_s:.0f} s spent; rerun to continue")
+            break
+        work = cache / "work" / meta["name"]
+        shutil.rmtree(work, ignore_errors=True)
+        try:
+            arrays = object_pairs(meta_path.parent, work, views, coarse_overrides)
+        except Exception as exc:  # one bad object must not stop a days-long build
+            log(f"pairs: skipped {meta['name']}: {type(exc).__name__}: {exc}")
+            continue
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = out.with_suffix(".tmp.npz")
+        np.savez_compressed(tmp, **arrays, holdout=np.bool_(meta.get("holdout", False)))
+        tmp.replace(out)
+        made += 1
+        log(f"pairs: {meta['name']} ({views} views) {float(arrays['seconds']):.0f} s")
+    return made
+
+
+def _one_thread_worker(fn, args, k: int, n: int):
+    import torch
+
+    torch.set_num_threads(1)
+    return fn(*args, workers=1, shard=(k, n))
+
+
+def in_processes(fn, n: int, *args) -> list:
+    """fn(*args, workers=1, shard=(k, n)) for k < n in n spawned one-thread processes."""
+    import multiprocessing as mp
+    import os
+
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS"):
+        os.environ[var] = "1"  # the children read these at start
+    pool = mp.get_context("spawn").Pool(n)
+    try:
+        out = pool.starmap(_one_thread_worker, [(fn, args, k, n) for k in range(n)])
+    except BaseException:
+        pool.terminate()
+        raise
+    pool.close()  # not terminate(): the workers exit on their own (pycolmap prints stacks on SIGTERM)
+    pool.join()
+    return out
+
+
+__all__ = ["build_pairs", "object_pairs", "in_processes"]

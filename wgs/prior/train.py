@@ -1,0 +1,223 @@
+"""Pretraining of the repair prior on corpus pairs: D on the LL subband, U on the HF subbands.
+
+D learns the Difix-style single step: its input is the *render* noised to a low level t < t_max
+(not the clean image, as in plain denoising training), its target the ground truth; at repair time
+it runs once at t = 0, deterministic. A model trained on noised clean images learns to copy x_t at
+low noise and ignores the corrupted control signal, which is why a from-scratch D repaired nothing.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..models.data import random_crops, to_model
+from ..models.hf_unet import HFUNet, HFUNetConfig
+from ..models.ll_denoiser import LLDenoiser, LLDenoiserConfig
+from ..models.optim import clipped_step
+from ..models.sampling import single_step
+from ..models.scheduler import DDIMScheduler
+from ..wavelet.haar import dwt2, stack_highs
+from . import WEIGHTS  # noqa: F401  (re-exported for the CLI)
+
+
+@dataclass
+class PriorConfig:
+    d_channels: int = 48
+    t_max: int = 200  # training noise levels 0..t_max-1 of 1000
+    train_timesteps: int = 1000
+    d_steps: int = 20000
+    d_batch: int = 32
+    d_crop: int = 48  # LL pixels
+    min_scale: float = 0.7  # zoom augmentation: finer detail than the corpus renders (out) ...
+    max_scale: float = 1.6  # ... and larger artifacts (in): scenes are often 200-400 px
+    identity_frac: float = 0.2  # share of samples whose input is the truth itself: leave good content alone
+    charbonnier: float = 1e-3  # robust L1 (sharper than L2's regression to the mean)
+    d_lr: float = 5e-4
+    ema_decay: float = 0.999
+    u_channels: int = 16
+    u_steps: int = 6000
+    u_batch: int = 32
+    u_crop: int = 64  # image pixels
+    u_lr: float = 1e-3
+    eval_every: int = 500
+    seed: int = 0
+
+
+def load_pack(path: Path) -> dict[str, torch.Tensor]:
+    """A training pack (`pack_pairs`): render, ref [N, 3, H, W] in [0, 1], holdout [N] bool, object [N]
+    (pair file index)."""
+    with np.load(path) as z:
+        out = {"render": torch.from_numpy(z["render"]).permute(0, 3, 1, 2).float() / 255,
+               "ref": torch.from_numpy(z["ref"]).permute(0, 3, 1, 2).float() / 255,
+               "holdout": torch.from_numpy(z["holdout"])}
+        if "object" in z.files:
+            out["object"] = torch.from_numpy(z["object"]).long()
+    return out
+
+
+def corpus_curve(pack: Path, fractions: list[float], cfg: PriorConfig, device: torch.device, log=print
+                 ) -> list[dict]:
+    """Held-out gain of D against corpus size: D trained on the first fraction of the training
+    objects (a fixed random order), always measured on the same held-out objects."""
+    data = load_pack(pack)
+    train_objs = data["object"][~data["holdout"]].unique()
+    order = train_objs[torch.randperm(len(train_objs), generator=torch.Generator().manual_seed(cfg.seed))]
+    rows = []
+    for frac in fractions:
+        keep = order[: max(1, round(frac * len(order)))]
+        use = data["holdout"] | torch.isin(data["object"], keep)
+        _, curve = train_d(cfg, data["render"][use], data["ref"][use], data["holdout"][use], device, log)
+        rows.append({"fraction": frac, "objects": int(len(keep)), "pairs": int((use & ~data["holdout"]).sum()),
+                     "identity_psnr": curve["val_identity_psnr"], "repaired_psnr": curve["val_psnr"][-1],
+                     "gain_db": curve["val_psnr"][-1] - curve["val_identity_psnr"]})
+        log(f"curve: {rows[-1]}")
+    return rows
+
+
+def pack_pairs(pairs_dir: Path, out: Path, max_objects: int | None = None) -> dict:
+    """All per-object pair files in one compressed pack (what travels to a GPU machine)."""
+    files = sorted(pairs_dir.glob("*.npz"))[:max_objects]
+    render, ref, hold, names, obj = [], [], [], [], []
+    for i, f in enumerate(files):
+        with np.load(f) as z:
+            render.append(z["render"])
+            ref.append(z["ref"])
+            hold.append(np.full(len(z["render"]), bool(z["holdout"])))
+            obj.append(np.full(len(z["render"]), i, np.int32))
+            names.append(f.stem)
+    np.savez_compressed(out, render=np.concatenate(render), ref=np.concatenate(ref), holdout=np.concatenate(hold),
+                        object=np.concatenate(obj))
+    return {"objects": names, "pairs": int(sum(len(r) for r in render)),
+            "holdout_objects": [n for n, h in zip(names, hold, strict=True) if h[0]]}
+
+
+def augmented_batch(render: torch.Tensor, ref: torch.Tensor, idx: torch.Tensor, crop: int, scales: tuple[float, float],
+                    gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """The same random zoom (log-uniform in `scales`), crop (even offsets: Haar blocks stay
+    intact), flips and colour-channel permutation of both images [N, 3, H, W] at idx -> [B, 3, c, c]."""
+    lo, hi = math.log(scales[0]), math.log(scales[1])
+    s = math.exp(lo + float(torch.rand(1, generator=gen)) * (hi - lo))
+    a, b = render[idx], ref[idx]
+    if abs(s - 1) > 0.01:
+        size = [max(crop, round(a.shape[-2] * s)), max(crop, round(a.shape[-1] * s))]
+        a = torch.nn.functional.interpolate(a, size=size, mode="bilinear", align_corners=False, antialias=s < 1)
+        b = torch.nn.functional.interpolate(b, size=size, mode="bilinear", align_corners=False, antialias=s < 1)
+    perm = torch.randperm(3, generator=gen)
+    a, b = random_crops([a[:, perm], b[:, perm]], torch.arange(len(idx)), crop, gen, align=2)
+    return a, b
+
+
+def ll_of(x: torch.Tensor) -> torch.Tensor:
+    return to_model(dwt2(x, 1)[0], "wavelet", 1)
+
+
+def psnr_model_space(a: torch.Tensor, b: torch.Tensor) -> float:
+    mse = (a - b).pow(2).mean().item()
+    return 10 * math.log10(4.0 / max(mse, 1e-12))  # model space spans 2
+
+
+def train_d(cfg: PriorConfig, render: torch.Tensor, ref: torch.Tensor, hold: torch.Tensor, device: torch.device,
+            log=print) -> tuple[LLDenoiser, dict]:
+    gen = torch.Generator().manual_seed(cfg.seed)
+    tr, va = (~hold).nonzero()[:, 0], hold.nonzero()[:, 0]
+    bad_v, clean_v = ll_of(render[va]).to(device), ll_of(ref[va]).to(device)
+    render, ref = render.to(device), ref.to(device)
+    model = LLDenoiser(LLDenoiserConfig(3, cfg.d_channels)).to(device)
+    ema = copy.deepcopy(model).eval()
+    sched = DDIMScheduler(cfg.train_timesteps)
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.d_lr, weight_decay=1e-4)
+    lr_at = lambda s: cfg.d_lr * min(1.0, s / 500) * 0.5 * (1 + math.cos(math.pi * s / cfg.d_steps))  # noqa: E731
+    curve = {"step": [], "loss": [], "val_psnr": [], "val_identity_psnr": psnr_model_space(bad_v, clean_v)}
+    acc, t0 = 0.0, time.perf_counter()
+    for step in range(1, cfg.d_steps + 1):
+        for g in opt.param_groups:
+            g["lr"] = lr_at(step)
+        idx = tr[torch.randint(len(tr), (cfg.d_batch,), generator=gen)]
+        r, c = augmented_batch(render, ref, idx.to(render.device), 2 * cfg.d_crop, (cfg.min_scale, cfg.max_scale), gen)
+        same = (torch.rand(len(idx), generator=gen) < cfg.identity_frac).to(r.device)
+        r = torch.where(same[:, None, None, None], c, r)
+        bad, clean = ll_of(r), ll_of(c)
+        t = torch.randint(cfg.t_max, (clean.shape[0],), generator=gen)
+        noise = torch.randn(bad.shape, generator=gen).to(device)
+        pred = model(sched.add_noise(bad, noise, t.to(device)), t.to(device), bad)
+        loss = ((pred - clean).pow(2) + cfg.charbonnier**2).sqrt().mean()
+        acc += clipped_step(opt, model, loss, "prior D", step, ema, cfg.ema_decay)
+        if step % cfg.eval_every == 0 or step == cfg.d_steps:
+            with torch.no_grad():
+                rep = torch.cat([single_step(ema, sched, bad_v[i:i + 64], 0) for i in range(0, len(va), 64)])
+            curve["step"].append(step)
+            curve["loss"].append(acc / cfg.eval_every)
+            curve["val_psnr"].append(psnr_model_space(rep, clean_v))
+            acc = 0.0
+            log(f"D step {step}: loss {curve['loss'][-1]:.5f}  held-out LL PSNR {curve['val_identity_psnr']:.2f} "
+                f"-> {curve['val_psnr'][-1]:.2f} dB  ({time.perf_counter() - t0:.0f} s)")
+    return ema, curve
+
+
+def hf_triplet(render: torch.Tensor, ref: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    ll_c, [h_c] = dwt2(render, 1)
+    _, [h_r] = dwt2(ref, 1)
+    return stack_highs(h_c), ll_c, stack_highs(h_r)
+
+
+def train_u(cfg: PriorConfig, render: torch.Tensor, ref: torch.Tensor, hold: torch.Tensor, device: torch.device,
+            log=print) -> tuple[HFUNet, dict]:
+    gen = torch.Generator().manual_seed(cfg.seed + 1)
+    tr, va = (~hold).nonzero()[:, 0], hold.nonzero()[:, 0]
+    v = [t.to(device) for t in hf_triplet(render[va], ref[va])]
+    render, ref = render.to(device), ref.to(device)
+    model = HFUNet(HFUNetConfig(channels=cfg.u_channels)).to(device)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.u_lr)
+    with torch.no_grad():
+        identity = (v[0] - v[2]).abs().mean().item()
+    best, best_state = identity, copy.deepcopy(model.state_dict())
+    curve = {"step": [], "val_l1": [], "identity_l1": identity}
+    for step in range(1, cfg.u_steps + 1):
+        idx = tr[torch.randint(len(tr), (cfg.u_batch,), generator=gen)]
+        hc, ll, hr = hf_triplet(*augmented_batch(render, ref, idx.to(render.device), cfg.u_crop,
+                                                 (cfg.min_scale, cfg.max_scale), gen))
+        loss = (model(hc, ll) - hr).abs().mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        if step % cfg.eval_every == 0 or step == cfg.u_steps:
+            with torch.no_grad():
+                vl = float(np.mean([(model(v[0][i:i + 64], v[1][i:i + 64]) - v[2][i:i + 64]).abs().mean().item()
+                                    for i in range(0, len(va), 64)]))
+            curve["step"].append(step)
+            curve["val_l1"].append(vl)
+            if vl < best:
+                best, best_state = vl, copy.deepcopy(model.state_dict())
+            log(f"U step {step}: held-out HF L1 {identity:.5f} -> {vl:.5f}")
+    model.load_state_dict(best_state)
+    curve["best_val_l1"] = best
+    return model.eval(), curve
+
+
+def train_prior(pack: Path, out: Path, cfg: PriorConfig, device: torch.device, provenance: dict | None = None,
+                log=print) -> dict:
+    """Train D and U on a pack; write out/D, out/U (config.json + model.safetensors), provenance.json."""
+    from ..models.storage import save_model
+
+    data = load_pack(pack)
+    torch.manual_seed(cfg.seed)
+    t0 = time.perf_counter()
+    d, d_curve = train_d(cfg, data["render"], data["ref"], data["holdout"], device, log)
+    save_model(out / "D", d, {"domain": "wavelet", "levels": 1, "train_timesteps": cfg.train_timesteps,
+                              "start": "corrupted", "t_max": cfg.t_max, "repair_t": 0})
+    t1 = time.perf_counter()
+    u, u_curve = train_u(cfg, data["render"], data["ref"], data["holdout"], device, log)
+    save_model(out / "U", u)
+    record = {"config": asdict(cfg), "pairs": int(len(data["holdout"])), "holdout_pairs": int(data["holdout"].sum()),
+              "device": str(device), "d_seconds": round(t1 - t0, 1),
+              "u_seconds": round(time.perf_counter() - t1, 1), "D": d_curve, "U": u_curve, **(provenance or {})}
+    (out / "provenance.json").write_text(json.dumps(record, indent=1))
+    return record
