@@ -79,7 +79,13 @@ def test_second_run_recomputes_nothing_and_fine_option_reruns_fine_and_eval(tiny
     after = finished(ws)
     changed = {s for s in STAGES if after[s] != before[s]}
     assert changed == {"fine", "eval"}
-    assert ws.manifest("fine")["iterations"] == 12
+    assert ws.manifest("fine")["iterations"] == 12 and ws.manifest("fine")["rounds"] == 1
+    # a second round: the refined model's renders repaired again, trained on again
+    res = CliRunner().invoke(cli, ["-q", "--config", str(cfg2), "-w", str(ws.root), "fine", "--rounds", "2"],
+                             catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    m = ws.manifest("fine")
+    assert m["rounds"] == 2 and m["iterations"] == 12 and math.isfinite(m["final_loss"])
 
 
 def test_left_out_without_masks_and_test_views(tiny, tmp_path):

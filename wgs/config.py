@@ -145,7 +145,7 @@ class FineConfig(TrainConfig):
     pseudo_until: float = 0.7
     pseudo_every: int = 2  # one pseudo-view step every k iterations
     lpips_weight: float = 0.1  # LPIPS (VGG) on the pseudo views, used when its weights are on this machine
-    rounds: int = 2  # > 1: the pseudo views are rendered from the refined model, repaired again, trained again
+    rounds: int = 1  # > 1: the pseudo views are rendered from the refined model, repaired again, trained again
 
 
 @dataclass
