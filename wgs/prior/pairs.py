@@ -25,7 +25,6 @@ from ..scene.dataset import composite, load_prepared
 from ..workspace import Workspace
 
 SPARSITIES = (4, 6, 4, 3, 4, 5)  # cycled over objects: mostly 4 views, as the product default
-CKPT = "ckpt.pt"
 
 
 def to_u8(x: torch.Tensor | np.ndarray) -> np.ndarray:
@@ -35,7 +34,7 @@ def to_u8(x: torch.Tensor | np.ndarray) -> np.ndarray:
 def object_pairs(scene_dir: Path, work: Path, views: int, coarse_overrides: dict, seed: int = 0) -> dict:
     """prepare + coarse on `views` views of the scene, then G_c at every test pose -> arrays."""
     from ..stages.s0_prepare import run_prepare
-    from ..stages.s1_coarse import run_coarse
+    from ..stages.s1_coarse import CKPT, run_coarse
 
     ws = Workspace(work)
     t0 = time.perf_counter()
