@@ -34,8 +34,10 @@ test: $(VENV)/.installed
 
 bench: $(VENV)/.installed
 	$(BIN)/python -m wgs.bench rasterizer --json
+	$(BIN)/python -m wgs.bench knn
 	$(BIN)/python -m wgs.bench pipeline --root bench_out
 	$(BIN)/python -m wgs.bench batch --root bench_out
+	$(BIN)/python -m wgs.bench contention --prepared bench_out/wgs --root bench_out
 
 ablation: $(VENV)/.installed
 	$(BIN)/wgs -w ablate ablate ../shared/data/lego --views 4 --downscale 2

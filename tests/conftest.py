@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import shutil
 import subprocess
 import sys
@@ -15,6 +16,9 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "examples"))
 LEGO = ROOT.parent / "shared" / "data" / "lego"
+# a fixed thread count: the tests compare reruns bit for bit, and sums depend on the thread count
+# (wgs otherwise adapts it to other processes' load, see wgs/threads.py)
+os.environ.setdefault("WGS_THREADS", str(len(os.sched_getaffinity(0))))
 
 # The smallest config that runs every stage (seconds per `wgs all` on a 48-64 px scene).
 TINY = """

@@ -5,7 +5,7 @@ import math
 import torch
 
 from wgs.config import TrainConfig
-from wgs.gaussians.init import floater_mask, knn_mean_distance, visual_hull
+from wgs.gaussians.init import floater_mask, knn_mean_distance, knn_mean_distance_torch, visual_hull
 from wgs.gaussians.splats import create_splats
 from wgs.gaussians.strategy import DensifyStrategy, remove, reset_opacity, split
 from wgs.gaussians.trainer import make_optimizers
@@ -113,10 +113,21 @@ def test_empty_hull_is_a_clear_error():
 def test_knn_and_floaters():
     pts = torch.randn(500, 3) * 0.1
     pts[0] = torch.tensor([5.0, 5.0, 5.0])
-    d = knn_mean_distance(pts, 3, chunk=64)
+    d = knn_mean_distance(pts, 3)
     assert d.shape == (500,) and d[0] > 10 * d[1:].median()
+    # the KD-tree matches the brute-force reference
+    torch.testing.assert_close(d, knn_mean_distance_torch(pts, 3, chunk=64), rtol=1e-5, atol=1e-7)
     m = floater_mask(pts, 8, 3.0)
     assert m[0] and m.sum() < 10
+
+
+def test_knn_edge_cases():
+    assert knn_mean_distance(torch.zeros(0, 3)).shape == (0,)
+    assert knn_mean_distance(torch.zeros(1, 3)).shape == (1,)
+    two = knn_mean_distance(torch.tensor([[0.0, 0, 0], [0.3, 0.4, 0]]), 3)  # k capped at n - 1
+    torch.testing.assert_close(two, torch.tensor([0.5, 0.5]))
+    same = knn_mean_distance(torch.ones(5, 3), 2)  # duplicates: zero distance, no NaN
+    assert torch.equal(same, torch.zeros(5))
 
 
 def test_strategy_fires_when_a_time_budget_jumps_past_the_interval():

@@ -28,6 +28,7 @@ import click
 
 from .errors import InputError
 from .progress import log
+from .threads import COUNT_VARS, ENV, available_cores
 from .workspace import STAGE_DIRS, atomic_write_bytes, atomic_write_json
 
 BATCH_DIR = "_batch"
@@ -180,7 +181,7 @@ def visible_gpus() -> list[str]:
 def run_local(tasks: list[SceneTask], root: Path, global_args: list[str], jobs: int | None, use_gpus: bool,
               rerun: bool = False) -> list[dict[str, Any]]:
     """A pool of child processes: one per visible GPU (CUDA_VISIBLE_DEVICES set per child), else `jobs`
-    on the CPU with the cores shared out (OMP/numba threads per child)."""
+    on the CPU with the cores shared out (WGS_THREADS per child, see threads.py)."""
     gpus = visible_gpus() if use_gpus else []
     n = max(1, jobs if jobs is not None else (len(gpus) or 1))
     if gpus:  # each child sees one GPU as cuda:0
@@ -191,9 +192,9 @@ def run_local(tasks: list[SceneTask], root: Path, global_args: list[str], jobs: 
         for g in gpus[:n]:
             slots.put({"CUDA_VISIBLE_DEVICES": g})
     else:
-        threads = str(max(1, (os.cpu_count() or 1) // n))  # share the cores out instead of oversubscribing
+        threads = str(max(1, available_cores() // n))  # share the cores out instead of oversubscribing
         for _ in range(n):
-            slots.put({"OMP_NUM_THREADS": threads, "NUMBA_NUM_THREADS": threads})
+            slots.put({ENV: threads, **{k: threads for k in COUNT_VARS}})
     log(f"batch: {len(tasks)} scene(s), {n} at a time" + (f" on GPUs {', '.join(gpus[:n])}" if gpus else " on the CPU"))
 
     def one(i_task: tuple[int, SceneTask]) -> dict[str, Any]:

@@ -1,4 +1,4 @@
-"""Benchmarks (not tests): `python -m wgs.bench rasterizer [--json] [--repeats R]`.
+"""Benchmarks (not tests): `python -m wgs.bench rasterizer|knn|pipeline|batch|contention` (see --help).
 
 The rasterizer benchmark times our numba fast path and the pure-torch reference in the same run
 on random scenes with realistic footprints (a few px to tens of px), forward and forward+backward,
@@ -152,9 +152,80 @@ def bench_batch(root: str, preset: str, seeds: tuple[int, ...] = (0, 1, 2), jobs
             "machine": {"platform": platform.platform(), "cpus": os.cpu_count()}}
 
 
+def timed_coarse_runs(prepared: Path, root: Path, iterations: int, copies: int, env: dict[str, str | None]
+                      ) -> list[float]:
+    """`wgs coarse` for `iterations` on `copies` copies of a prepared workspace, started together;
+    wall time of each. env: variables to set (None: unset) in the children."""
+    cfg = root / "coarse.toml"
+    cfg.write_text(f"[coarse]\niterations = {iterations}\nrefine_stop = {iterations}\n")
+    procs = []
+    for i in range(copies):
+        ws = root / f"ws{i}"
+        if ws.exists():
+            shutil.rmtree(ws)
+        ws.mkdir(parents=True)
+        shutil.copytree(prepared / "scene", ws / "scene")
+    for i in range(copies):
+        cmd = [sys.executable, "-m", "wgs", "-q", "--config", str(cfg), "-w", str(root / f"ws{i}"), "coarse"]
+        child = {k: v for k, v in {**os.environ, **env}.items() if v is not None}
+        procs.append((time.perf_counter(), subprocess.Popen(cmd, env=child)))
+    walls = []
+    for t0, p in procs:
+        if p.wait() != 0:
+            raise RuntimeError(f"wgs coarse failed ({p.returncode})")
+        walls.append(time.perf_counter() - t0)
+    return walls
+
+
+# thread settings compared by `contention`: wgs's own (threads.py) against the runtimes' defaults
+CONTENTION_VARIANTS: dict[str, dict[str, str | None]] = {
+    "wgs (adaptive)": {},
+    "fixed threads": {"WGS_THREADS": str(os.cpu_count() or 1)},  # all cores, spinning: what wgs did before
+    "numba workqueue": {"NUMBA_THREADING_LAYER": "workqueue"},
+    "one thread": {"WGS_THREADS": "1"},
+}
+
+
+def bench_contention(prepared: str, root: str, iterations: int, variants: tuple[str, ...]) -> dict:
+    """Two `wgs coarse` runs started together against one alone, per thread setting: the slowdown
+    a user sees when wgs shares the machine (issue 13). One after the other, nothing else running."""
+    base = Path(root) / "contention"
+    base.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for name in variants:
+        env = CONTENTION_VARIANTS[name]
+        solo = timed_coarse_runs(Path(prepared), base, iterations, 1, env)[0]
+        pair = timed_coarse_runs(Path(prepared), base, iterations, 2, env)
+        rows.append({"threads": name, "env": env, "solo_s": round(solo, 1), "pair_s": [round(w, 1) for w in pair],
+                     "slowdown": round(max(pair) / solo, 2)})
+    return {"benchmark": "contention", "iterations": iterations, "rows": rows,
+            "machine": {"platform": platform.platform(), "cpus": os.cpu_count()}}
+
+
+def bench_knn(sizes: tuple[int, ...] = (100_000, 1_000_000), reference_up_to: int = 100_000) -> dict:
+    """Mean 3-NN distance (scale init, floater removal): scipy's KD-tree against the brute-force
+    torch reference (run only up to `reference_up_to` points: it is O(N^2))."""
+    from .gaussians.init import knn_mean_distance, knn_mean_distance_torch
+
+    rows = []
+    for n in sizes:
+        pts = torch.randn(n, 3, generator=torch.Generator().manual_seed(0)) * 0.3
+        t0 = time.perf_counter()
+        d = knn_mean_distance(pts, 3)
+        row = {"points": n, "kdtree_s": round(time.perf_counter() - t0, 3)}
+        if n <= reference_up_to:
+            t0 = time.perf_counter()
+            ref = knn_mean_distance_torch(pts, 3)
+            row["torch_s"] = round(time.perf_counter() - t0, 3)
+            row["speedup"] = round(row["torch_s"] / row["kdtree_s"], 1)
+            row["max_abs_diff"] = float((d - ref).abs().max())
+        rows.append(row)
+    return {"benchmark": "knn", "rows": rows, "threads": torch.get_num_threads()}
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(prog="python -m wgs.bench")
-    ap.add_argument("which", choices=["rasterizer", "pipeline", "batch"])
+    ap.add_argument("which", choices=["rasterizer", "pipeline", "batch", "contention", "knn"])
     ap.add_argument("--json", action="store_true", help="print JSON instead of a table")
     ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--ref-repeats", type=int, default=3)
@@ -163,7 +234,24 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--preset", default=None, help="default for pipeline, fast for batch")
     ap.add_argument("--views", type=int, default=4)
     ap.add_argument("--downscale", type=int, default=2)
+    ap.add_argument("--prepared", help="contention: a workspace after `wgs prepare`")
+    ap.add_argument("--iterations", type=int, default=300, help="contention: coarse iterations per run")
+    ap.add_argument("--variants", default=",".join(CONTENTION_VARIANTS), help="contention: thread settings")
     a = ap.parse_args(argv)
+    if a.which == "knn":
+        json.dump(bench_knn(), sys.stdout, indent=2)
+        print()
+        return
+    if a.which == "contention":
+        if not a.prepared:
+            ap.error("contention needs --prepared WORKSPACE")
+        if not (Path(a.prepared) / "scene").is_dir():
+            print(f"no prepared workspace at {a.prepared}: skipped")
+            return
+        res = bench_contention(a.prepared, a.root, a.iterations, tuple(a.variants.split(",")))
+        json.dump(res, sys.stdout, indent=2)
+        print()
+        return
     if a.which == "batch":
         res = bench_batch(a.root, a.preset or "fast")
         (Path(a.root) / "batch.json").write_text(json.dumps(res, indent=2))

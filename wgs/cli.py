@@ -19,6 +19,7 @@ from .config import as_dict, load_config_file, resolve
 from .errors import WgsError
 from .progress import log, results, set_quiet
 from .resume import Interrupted
+from .threads import configure as configure_threads
 from .workspace import STAGE_DIRS, Workspace
 
 HELP = """WaveletGaussian: sparse-view 3D Gaussian object reconstruction.
@@ -82,10 +83,14 @@ class Ctx:
 @click.option("--resume", is_flag=True, help="Continue an interrupted stage from its saved state.")
 @click.option("--checkpoint-every", type=click.FloatRange(min=0), default=60.0, show_default=True,
               help="Seconds between saved states inside long training loops.")
+@click.option("--threads", type=click.IntRange(min=1), default=None,
+              help="CPU threads for torch and numba (default: WGS_THREADS, else the cores this process may use).")
 @click.version_option(__version__, prog_name="wgs")
 @click.pass_context
-def cli(ctx: click.Context, workspace, device, seed, quiet, config_file, debug, resume, checkpoint_every) -> None:
+def cli(ctx: click.Context, workspace, device, seed, quiet, config_file, debug, resume, checkpoint_every,
+        threads) -> None:
     set_quiet(quiet)
+    configure_threads(threads)
     file_cfg = load_config_file(config_file) if config_file else {"global": {}}
     g = file_cfg["global"]
     ctx.obj = Ctx(workspace, device or g.get("device", "auto"), seed if seed is not None else g.get("seed", 0),
@@ -158,6 +163,11 @@ def info(obj: Ctx) -> None:
         table.add_row(stage, folder + "/", f"[{colour}]{st}[/]", f"{wt:.1f} s" if wt is not None else "",
                       mm.get("finished", ""))
     results.print(table)
+    from .threads import describe
+
+    t = describe()
+    results.print(f"threads: torch {t['torch_threads']}, numba {t['numba_threads']} ({t['numba_layer']}) "
+                  f"on {t['cores']} available core(s), {'adaptive' if t['adaptive'] else 'fixed'}")
 
 
 def _register_stages() -> None:

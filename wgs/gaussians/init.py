@@ -90,8 +90,22 @@ def random_init(n: int, radius: float = 0.5, generator: torch.Generator | None =
     return d * r, torch.full((n, 3), 0.5)
 
 
-def knn_mean_distance(points: torch.Tensor, k: int = 3, chunk: int = 2048) -> torch.Tensor:
-    """Mean distance of each point to its k nearest neighbours: [N, 3] -> [N]."""
+def knn_mean_distance(points: torch.Tensor, k: int = 3) -> torch.Tensor:
+    """Mean distance of each point to its k nearest neighbours: [N, 3] -> [N] (a KD-tree, scipy's
+    cKDTree: O(N log N); `knn_mean_distance_torch` is the O(N^2) reference)."""
+    n = points.shape[0]
+    if n <= 1:
+        return torch.full((n,), 0.01, device=points.device)
+    from scipy.spatial import cKDTree
+
+    k = min(k, n - 1)
+    pts = points.detach().to("cpu", torch.float64).numpy()
+    dist, _ = cKDTree(pts).query(pts, k + 1, workers=torch.get_num_threads())
+    return torch.from_numpy(dist[:, 1:].mean(axis=1)).to(device=points.device, dtype=points.dtype)
+
+
+def knn_mean_distance_torch(points: torch.Tensor, k: int = 3, chunk: int = 2048) -> torch.Tensor:
+    """Reference of `knn_mean_distance`: brute-force distances in chunks (any device)."""
     n = points.shape[0]
     if n <= 1:
         return torch.full((n,), 0.01, device=points.device)

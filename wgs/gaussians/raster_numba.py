@@ -20,6 +20,12 @@ from .raster_torch import ALPHA_MAX, ALPHA_MIN, POWER_MIN, T_MIN, depth_order
 TILE = 16
 NG = 6  # per-entry gradient slots before the colours: mean x, mean y, conic a, b, c, opacity
 COORD_LIMIT = 1e8  # px; keeps tile arithmetic in range for absurd footprints
+# float32 constants: the per-pair Gaussian stays in float32 (expf), transmittance in float64
+F_HALF = np.float32(0.5)
+F_POWER_MIN = np.float32(POWER_MIN)
+F_ALPHA_MAX = np.float32(ALPHA_MAX)
+F_ALPHA_MIN = np.float32(ALPHA_MIN)
+F_ZERO = np.float32(0.0)
 
 
 @nb.njit(cache=True)
@@ -92,19 +98,19 @@ def _forward(P, offsets, bg, width, height, tile, out_color, out_T, out_last):
         s = offsets[t]
         e = offsets[t + 1]
         for py in range(ty * tile, min(height, ty * tile + tile)):
-            fy = py + 0.5
+            fy = np.float32(py) + F_HALF
             for px in range(tx * tile, min(width, tx * tile + tile)):
-                fx = px + 0.5
+                fx = np.float32(px) + F_HALF
                 T = 1.0
                 last = s
                 for k in range(s, e):
                     dx = fx - P[k, 0]
                     dy = fy - P[k, 1]
-                    power = -0.5 * (P[k, 2] * dx * dx + P[k, 4] * dy * dy) - P[k, 3] * dx * dy
-                    if power > 0.0 or power < POWER_MIN:
+                    power = -F_HALF * (P[k, 2] * dx * dx + P[k, 4] * dy * dy) - P[k, 3] * dx * dy
+                    if power > F_ZERO or power < F_POWER_MIN:
                         continue
-                    al = min(ALPHA_MAX, P[k, 5] * math.exp(power))
-                    if al < ALPHA_MIN:
+                    al = min(F_ALPHA_MAX, P[k, 5] * math.exp(power))
+                    if al < F_ALPHA_MIN:
                         continue
                     nT = T * (1.0 - al)
                     if nT < T_MIN:
@@ -132,12 +138,12 @@ def _backward(P, offsets, bg, width, height, tile, out_T, out_last, g_color, g_a
         accum = np.zeros(D)
         lastc = np.zeros(D)
         for py in range(ty * tile, min(height, ty * tile + tile)):
-            fy = py + 0.5
+            fy = np.float32(py) + F_HALF
             for px in range(tx * tile, min(width, tx * tile + tile)):
                 last = out_last[py, px]
                 if last == s:
                     continue
-                fx = px + 0.5
+                fx = np.float32(px) + F_HALF
                 Tf = out_T[py, px]
                 T = Tf
                 bgdot = 0.0
@@ -150,13 +156,13 @@ def _backward(P, offsets, bg, width, height, tile, out_T, out_last, g_color, g_a
                 for k in range(last - 1, s - 1, -1):
                     dx = fx - P[k, 0]
                     dy = fy - P[k, 1]
-                    power = -0.5 * (P[k, 2] * dx * dx + P[k, 4] * dy * dy) - P[k, 3] * dx * dy
-                    if power > 0.0 or power < POWER_MIN:
+                    power = -F_HALF * (P[k, 2] * dx * dx + P[k, 4] * dy * dy) - P[k, 3] * dx * dy
+                    if power > F_ZERO or power < F_POWER_MIN:
                         continue
                     gauss = math.exp(power)
                     raw = P[k, 5] * gauss
-                    al = min(ALPHA_MAX, raw)
-                    if al < ALPHA_MIN:
+                    al = min(F_ALPHA_MAX, raw)
+                    if al < F_ALPHA_MIN:
                         continue
                     inv = 1.0 / (1.0 - al)
                     T = T * inv
@@ -169,7 +175,7 @@ def _backward(P, offsets, bg, width, height, tile, out_T, out_last, g_color, g_a
                     d_al *= T
                     last_al = al
                     d_al += (gA - bgdot) * Tf * inv
-                    if raw <= ALPHA_MAX:
+                    if raw <= F_ALPHA_MAX:
                         d_pow = d_al * al
                         G[k, 0] += d_pow * (P[k, 2] * dx + P[k, 3] * dy)
                         G[k, 1] += d_pow * (P[k, 3] * dx + P[k, 4] * dy)

@@ -21,6 +21,7 @@ from ..errors import WgsError
 from ..progress import progress_bar
 from ..resume import Checkpointer, check_interrupt, deferred_sigint, rng_state, set_rng_state
 from ..scene.dataset import Frame
+from ..threads import adapt as adapt_threads
 from .init import floater_mask
 from .render import rasterize
 from .splats import Splats, activate
@@ -128,6 +129,7 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
     with progress_bar(desc, cfg.iterations) as prog, deferred_sigint():
         prog.update(0, completed=it)
         for it in range(it + 1, (it if finished else cfg.iterations) + 1):  # noqa: B020 - resumes the count
+            adapt_threads()
             prev_sched = sched
             sched = it
             if cfg.max_seconds:

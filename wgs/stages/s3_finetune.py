@@ -23,6 +23,7 @@ from ..models.storage import load_model, save_model
 from ..prior import WEIGHTS as PRIOR_WEIGHTS
 from ..progress import log, progress_bar
 from ..resume import Checkpointer, check_interrupt, deferred_sigint, rng_state, set_rng_state
+from ..threads import adapt as adapt_threads
 from ..wavelet.exr import read_subbands
 from ..wavelet.haar import dwt2, idwt2, stack_highs
 from ..workspace import StageRun, Workspace, atomic_write_json, read_json
@@ -61,6 +62,7 @@ def train_denoiser(cfg: FinetuneConfig, clean: torch.Tensor, bad: torch.Tensor, 
     with progress_bar("finetune D", cfg.d_steps) as prog, deferred_sigint():
         prog.update(0, completed=done)
         for step in range(done + 1, cfg.d_steps + 1):
+            adapt_threads()
             idx = torch.randint(clean.shape[0], (cfg.d_batch,), generator=gen)
             x0, c = (t.to(device) for t in random_crops([clean, bad], idx, cfg.d_crop, gen))
             t = torch.randint(cfg.train_timesteps, (x0.shape[0],), generator=gen)
@@ -139,6 +141,7 @@ def train_hf_unet(cfg: FinetuneConfig, renders: torch.Tensor, refs: torch.Tensor
     last = st["step"] if st["finished"] else cfg.u_max_steps
     with progress_bar("finetune U", cfg.u_max_steps) as prog, deferred_sigint():
         for step in range(st["step"] + 1, last + 1):
+            adapt_threads()
             idx = train_ids[torch.randint(len(train_ids), (cfg.u_batch,), generator=gen)]
             hc, ll, hr = (t.to(device) for t in hf_batch(*random_crops([renders, refs], idx, 2 * cfg.u_crop, gen,
                                                                          align=2)))
@@ -206,6 +209,7 @@ def finetune_prior_d(cfg: FinetuneConfig, prior: Path, clean: torch.Tensor, bad:
     curve: dict[str, Any] = {"step": [0], "loss": [], "val": [start]}
     with progress_bar("finetune D (prior)", cfg.prior_steps) as prog:
         for step in range(1, cfg.prior_steps + 1):
+            adapt_threads()
             idx = torch.randint(clean.shape[0], (cfg.d_batch,), generator=gen)
             x0, c = (t.to(device) for t in random_crops([clean, bad], idx, cfg.d_crop, gen))
             t = torch.randint(d_cfg["t_max"], (x0.shape[0],), generator=gen)

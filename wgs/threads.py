@@ -1,0 +1,176 @@
+"""Thread discipline: the one place that decides how many threads torch, numba and BLAS use.
+
+Measured on a 2-core machine (`python -m wgs.bench contention`, 600 coarse iterations on lego):
+with a fixed thread count one run takes 56 s and two runs started together 618 s each (11x),
+because OpenMP threads spin while they wait and two processes' spinning threads steal each
+other's cores. A passive wait policy fixes the pair (89 s) but costs 25% alone (71 s), and one
+thread each takes 85 s either way. So wgs keeps spinning pools while it has the cores to itself
+and shrinks them while other processes keep cores busy (`adapt`, called by the training loops):
+55 s alone, 86 s each for two (1.6x). A fixed count (`--threads N`, `WGS_THREADS`) turns this
+off; bit-identical reruns need one, since sums depend on the thread count. numba keeps its own
+threading layer choice (omp here: 10% faster than workqueue alone, the same in pairs).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+ENV = "WGS_THREADS"
+# thread counts read once when a runtime starts: set (unless exported) before torch / numba start
+COUNT_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS")
+
+
+def cgroup_quota(root: Path = Path("/sys/fs/cgroup")) -> float | None:
+    """CPUs allowed by a cgroup v2 (`cpu.max`) or v1 (`cpu.cfs_quota_us`) quota; None without one."""
+    try:
+        quota, period = (root / "cpu.max").read_text().split()[:2]
+        return None if quota == "max" else int(quota) / int(period)
+    except (OSError, ValueError):
+        pass
+    try:
+        quota = int((root / "cpu" / "cpu.cfs_quota_us").read_text())
+        period = int((root / "cpu" / "cpu.cfs_period_us").read_text())
+        return quota / period if quota > 0 and period > 0 else None
+    except (OSError, ValueError):
+        return None
+
+
+def available_cores() -> int:
+    """Cores this process may run on: its CPU affinity, capped by a cgroup quota."""
+    try:
+        n = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        n = os.cpu_count() or 1
+    quota = cgroup_quota()
+    if quota is not None:
+        n = min(n, max(1, math.ceil(quota)))
+    return max(1, n)
+
+
+def thread_count(requested: int | None = None) -> int:
+    """`requested` (--threads), else WGS_THREADS, else the available cores."""
+    if requested is None and os.environ.get(ENV, "").strip():
+        try:
+            requested = int(os.environ[ENV])
+        except ValueError:
+            from .errors import WgsError
+
+            raise WgsError(f"{ENV} must be a positive integer, got {os.environ[ENV]!r}") from None
+    if requested is not None and requested < 1:
+        from .errors import WgsError
+
+        raise WgsError(f"thread count must be at least 1, got {requested}")
+    return requested if requested is not None else available_cores()
+
+
+def set_runtime_defaults(env: dict[str, str] | None = None) -> None:
+    """Thread counts for runtimes that read them only when they start (user exports win)."""
+    env = os.environ if env is None else env
+    try:
+        n = str(thread_count())
+    except Exception:  # a bad WGS_THREADS: `configure` reports it as one error line
+        return
+    for key in COUNT_VARS:
+        env.setdefault(key, n)
+
+
+def cpu_sample() -> tuple[float, float, float] | None:
+    """(wall s, CPU s used by the whole machine, CPU s used by this process); None off Linux."""
+    try:
+        with open("/proc/stat") as f:
+            v = [int(x) for x in f.readline().split()[1:9]]
+        with open("/proc/self/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+    except (OSError, ValueError, IndexError):
+        return None
+    tick = os.sysconf("SC_CLK_TCK")
+    busy = sum(v) - v[3] - v[4]  # all but idle and iowait
+    return time.monotonic(), busy / tick, (int(fields[11]) + int(fields[12])) / tick
+
+
+@dataclass
+class Governor:
+    """Thread count that follows the cores other processes leave free (see the module docstring)."""
+
+    cores: int
+    adaptive: bool = True
+    every_s: float = 1.0
+    sample: Callable[[], tuple[float, float, float] | None] = cpu_sample
+    apply: Callable[[int], None] | None = None
+    current: int = 0
+    _last: tuple[float, float, float] | None = None
+
+    def __post_init__(self) -> None:
+        self.current = self.cores
+
+    def tick(self) -> int:
+        """Cheap unless `every_s` passed: then measure others' CPU use and set the thread count."""
+        if not self.adaptive or self.cores <= 1:
+            return self.current
+        if self._last is not None and time.monotonic() - self._last[0] < self.every_s:
+            return self.current
+        now = self.sample()
+        if now is None:
+            self.adaptive = False
+            return self.current
+        last, self._last = self._last, now
+        if last is None or now[0] <= last[0]:
+            return self.current
+        others = max(0.0, (now[1] - last[1]) - (now[2] - last[2])) / (now[0] - last[0])
+        target = max(1, self.cores - int(others + 0.5))
+        if target != self.current:
+            self.current = target
+            if self.apply is not None:
+                self.apply(target)
+        return self.current
+
+
+_governor: Governor | None = None
+
+
+def set_pools(n: int) -> None:
+    import torch
+
+    torch.set_num_threads(n)
+    try:
+        import numba
+
+        numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
+    except (ImportError, ValueError):
+        pass
+
+
+def configure(threads: int | None = None) -> int:
+    """Set torch's and numba's thread counts now; adaptive unless a count was given (here or in
+    WGS_THREADS). Returns the count."""
+    global _governor
+    fixed = threads is not None or bool(os.environ.get(ENV, "").strip())
+    n = thread_count(threads)
+    set_pools(n)
+    _governor = Governor(n, adaptive=not fixed, apply=set_pools)
+    return n
+
+
+def adapt() -> int:
+    """Call from the main thread of long loops (torch's thread count is per calling thread)."""
+    return _governor.tick() if _governor is not None else 0
+
+
+def describe() -> dict[str, object]:
+    """What is in force: for `wgs info`, benchmarks and tests."""
+    import numba
+    import torch
+
+    try:
+        layer = numba.threading_layer()
+    except ValueError:  # no parallel function ran yet
+        layer = f"{numba.config.THREADING_LAYER} (not started)"
+    return {"cores": available_cores(), "torch_threads": torch.get_num_threads(),
+            "numba_threads": numba.get_num_threads(), "numba_layer": layer,
+            "adaptive": bool(_governor and _governor.adaptive),
+            "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS")}
