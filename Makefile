@@ -15,17 +15,22 @@ PRIOR_BUDGET_MIN ?= 120
 
 setup: $(VENV)/.installed
 
-$(VENV)/.installed: pyproject.toml
+# the demo needs wgs and its dependencies only; the tests add their extras on top
+$(VENV)/.base: pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q "$(TORCH_SPEC)"
+	$(BIN)/python -m pip install -q -e .
+	touch $@
+
+$(VENV)/.installed: $(VENV)/.base
 	$(BIN)/python -m pip install -q -e ".[test]"
 	touch $@
 
-examples/scene/transforms_train.json: examples/make_scene.py | $(VENV)/.installed
+examples/scene/transforms_train.json: examples/make_scene.py | $(VENV)/.base
 	$(BIN)/python examples/make_scene.py examples/scene
 
-demo: $(VENV)/.installed examples/scene/transforms_train.json
+demo: $(VENV)/.base examples/scene/transforms_train.json
 	$(BIN)/wgs -w $(DEMO_WS) all examples/scene --preset fast
 	@cat $(DEMO_WS)/6_eval/report.md
 

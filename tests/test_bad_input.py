@@ -44,6 +44,17 @@ def test_truncated_image(scene_copy, tmp_path):
     expect_error(tmp_path, prep(scene_copy, tmp_path), "r_2.png")
 
 
+def test_image_truncated_inside_its_pixels_gives_one_line(scene_copy, tmp_path):
+    """The decoder's own messages (libpng prints to stderr) are silenced: stderr is our one line."""
+    p = scene_copy / "train" / "r_2.png"
+    p.write_bytes(p.read_bytes()[: p.stat().st_size // 2])
+    proc = run_cli(prep(scene_copy, tmp_path), tmp_path)
+    assert proc.returncode == 2
+    errors = [ln for ln in proc.stderr.splitlines() if ln.startswith("error:")]
+    assert len(errors) == 1 and "r_2.png" in errors[0] and "truncated" in errors[0], proc.stderr
+    assert "libpng" not in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+
+
 def test_images_of_different_sizes(scene_copy, tmp_path):
     write_png(scene_copy / "train" / "r_3.png", np.ones((40, 48, 4), np.float32))
     expect_error(tmp_path, prep(scene_copy, tmp_path), "r_3.png", "48x40")
@@ -192,3 +203,17 @@ def test_failed_prepare_keeps_previous_workspace(scene_copy, tmp_path):
 
 def test_info_without_workspace(tmp_path):
     expect_error(tmp_path, ["info"], "workspace")
+
+
+def test_all_in_an_empty_folder_without_workspace(tmp_path):
+    """`wgs all .` names its workspace beside the folder, then says the folder holds no scene."""
+    empty = tmp_path / "photos"
+    empty.mkdir()
+    expect_error(empty, ["all", "."], "photos")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["photos"]  # no workspace left behind
+
+
+def test_global_option_after_the_command_says_where_it_goes(tmp_path):
+    proc = run_cli(["all", "scene", "--device", "cpu"], tmp_path)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert "--device is a global option: put it before the command" in proc.stderr

@@ -48,6 +48,10 @@ def test_coarse_writes_the_workspace_contract(blender_scene, tmp_path):
     ply = import_ply(d / "point_cloud.ply")
     assert ply["means"].shape[0] == splats["means"].shape[0] == m["num_gaussians"]
     torch.testing.assert_close(ply["means"], blob["splats"]["means"])  # PLY is in world coordinates
+    assert ply["shN"].shape[1] == 15  # padded to degree 3 (45 f_rest) for INRIA-layout viewers
+    deg = blob["splats"]["shN"].shape[1]
+    torch.testing.assert_close(ply["shN"][:, :deg], blob["splats"]["shN"])
+    assert (ply["shN"][:, deg:] == 0).all()
     assert json.loads((d / "train_psnr.json").read_text()).keys() == set(names)
 
     # fresh: skipped; a new option reruns coarse

@@ -18,7 +18,7 @@ CONTRACT = [
     "3_finetune/U/model.safetensors", "3_finetune/curves.json", "3_finetune/curves.png",
     "4_repair/views.json", "4_repair/contact_sheet.png", "5_fine/ckpt.pt", "5_fine/point_cloud.ply",
     "6_eval/results.json", "6_eval/per_view.json", "6_eval/per_view_coarse.json", "6_eval/report.md",
-    "6_eval/error_vs_time.png",
+    "6_eval/error_vs_time.png", "6_eval/report.html", "6_eval/turntable.gif",
 ]
 STAGES = ["scene", "coarse", "mask_data", "finetune", "repair", "fine", "eval"]
 
@@ -54,16 +54,40 @@ def test_workspace_contract_and_results(tiny):
     for k in ("psnr", "psnr_std", "ssim", "ssim_std"):
         assert math.isfinite(res[k]) and math.isfinite(res["coarse"][k])
     assert res["num_views"] == 5 and res["num_gaussians"] > 0
+    assert res["method"] == "wgs" and res["seed"] == 0 and res["version"] and res["scene"].endswith("scene")
+    assert res["results"]["psnr"] == res["psnr"] and res["results"]["ssim_std"] == res["ssim_std"]  # ns-eval layout
     assert res["lpips"] is None and "not found" in res["lpips_unavailable"]
     per = json.loads((ws.root / "6_eval/per_view.json").read_text())
     assert len(per["psnr"]) == 5
     assert set(res["stage_times_s"]) == {"scene", "coarse", "mask_data", "finetune", "repair", "fine"}
     assert "PSNR" in output and "report" in output
     report = (ws.root / "6_eval/report.md").read_text()
+    page = (ws.root / "6_eval/report.html").read_text()
+    # self-contained: plot, 2 worst + 2 best sheets (5 views) and the contact sheet embedded
+    assert page.count("src='data:image/png;base64,") == 1 + 4 + 1 and "src='http" not in page
+    assert len(list((ws.root / "6_eval/sheets").glob("*.png"))) == 4
+    worst = min(per["psnr"], key=per["psnr"].get)
+    assert page.index(worst) < page.index("Per view") and "Repair gain" in page
+    assert page.count("src='data:image/gif;base64,") == 1  # the turntable
     assert "| coarse |" in report and "| fine |" in report
     views = json.loads((ws.root / "4_repair/views.json").read_text())
     assert len(views["views"]) == 16 and views["used_u"] is True  # RepairConfig.num_views over the sphere
     assert all(0 < v["weight"] <= 1 for v in views["views"])
+
+
+def test_render_defaults_to_the_newest_model(tiny):
+    _, _, ws, _ = tiny
+    res = CliRunner().invoke(cli, ["-q", "-w", str(ws.root), "render", "--views", "test"], catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    assert len(list((ws.root / "renders" / "fine_test").glob("*.png"))) == 5
+    assert not (ws.root / "renders" / "coarse_test").exists()
+    res = CliRunner().invoke(cli, ["-q", "-w", str(ws.root), "render", "--views", "path", "--frames", "3", "--video"],
+                             catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    from PIL import Image
+
+    with Image.open(ws.root / "renders" / "fine_path.gif") as gif:
+        assert gif.n_frames == 3 and gif.size == (64, 64)
 
 
 def test_second_run_recomputes_nothing_and_fine_option_reruns_fine_and_eval(tiny, tmp_path):

@@ -32,7 +32,20 @@ HELP = """WaveletGaussian: sparse-view 3D Gaussian object reconstruction.
   repair     repair novel-view renders -> pseudo references;  fine: refine on them;  eval: metrics
 
 Every stage reads and writes one workspace (-w) and is skipped when up to date.
+
+\b
+Quick start:
+  wgs -w my_ws all path/to/scene     # every stage, then the report
+  wgs -w my_ws info                  # what the workspace holds
+  wgs -w my_ws render --views path   # an orbit of the final model
 """
+
+
+class PipelineOrderGroup(click.Group):
+    """Commands listed in the order they were added (pipeline order), not alphabetically."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return list(self.commands)
 
 
 @dataclass
@@ -73,7 +86,8 @@ class Ctx:
         return dev
 
 
-@click.group(help=HELP, context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(cls=PipelineOrderGroup, help=HELP,
+             context_settings={"help_option_names": ["-h", "--help"], "show_default": True})
 @click.option("-w", "--workspace", type=click.Path(path_type=Path), help="Workspace folder.")
 @click.option("--device", default=None, help="auto | cpu | cuda[:N] | mps  (auto: cuda, mps, cpu).")
 @click.option("--seed", type=int, default=None, help="Random seed (default 0).")
@@ -176,6 +190,14 @@ def _register_stages() -> None:
     commands.register(cli, stage_common, workspace_option)
 
 
+def global_option_hint(name: str) -> str:
+    """Where a global option goes when it was given after the command (`wgs all S --device cpu`)."""
+    for p in cli.params:
+        if name in getattr(p, "opts", ()) or name in getattr(p, "secondary_opts", ()):
+            return f"{name} is a global option: put it before the command, `wgs {name} ... COMMAND ...`"
+    return ""
+
+
 INTERRUPTED = "interrupted: finished stages are kept; `wgs --resume ...` continues from the last saved state"
 
 
@@ -186,6 +208,12 @@ def main(argv: list[str] | None = None) -> None:
     except (click.exceptions.Abort, KeyboardInterrupt):
         click.echo(INTERRUPTED, err=True)
         sys.exit(130)
+    except click.NoSuchOption as exc:
+        where = global_option_hint(exc.option_name)
+        if where:
+            exc.message = f"{exc.message} ({where})"
+        exc.show()
+        sys.exit(exc.exit_code)
     except click.ClickException as exc:
         exc.show()
         sys.exit(exc.exit_code)

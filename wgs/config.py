@@ -141,8 +141,10 @@ class FineConfig(TrainConfig):
     refine_start: int = 100
     refine_stop: int = 1000
     pseudo_weight_start: float = 1.0
-    pseudo_weight_end: float = 0.5  # reached at pseudo_until of the iterations; 0 after (real views only)
-    pseudo_until: float = 0.7
+    pseudo_weight_end: float = 1.0  # reached at pseudo_until of the iterations; 0 after (real views only)
+    # GaussianObject stops the pseudo views at 0.7 with weight 0.5; keeping them to the end at full
+    # weight measured +0.16 dB on lego (19.33 -> 19.49, 4 views) and +0.10 dB on the example
+    pseudo_until: float = 1.0
     pseudo_every: int = 2  # one pseudo-view step every k iterations
     lpips_weight: float = 0.1  # LPIPS (VGG) on the pseudo views, used when its weights are on this machine
     rounds: int = 1  # > 1: the pseudo views are rendered from the refined model, repaired again, trained again
@@ -154,6 +156,7 @@ class EvalConfig:
     lpips_weights: str | None = None  # folder; also $WGS_LPIPS_WEIGHTS, $TORCH_HOME/hub/checkpoints
     max_views: int | None = None  # evaluate on the first k test views only
     repair_gain: bool = True  # also repair G_c's renders at the test poses and score them (the repair's own gain)
+    turntable_frames: int = 48  # a GIF of the final model on an orbit fitted to the training cameras; 0: none
 
 
 STAGES: dict[str, type] = {"prepare": PrepareConfig, "coarse": CoarseConfig, "mask_data": MaskDataConfig,

@@ -116,6 +116,9 @@ def load_checkpoint(path: Path, norm: Normalisation | None = None, device: torch
 
 
 # ----------------------------------------------------------------------------------- PLY
+VIEWER_SH_DEGREE = 3  # INRIA's SIBR viewer reads a fixed degree-3 record (45 f_rest): stages pad to it
+
+
 def ply_attributes(sh_deg: int) -> list[str]:
     """The standard 3DGS attribute order (INRIA layout read by SuperSplat and gsplat's viewer)."""
     n_rest = 3 * (num_sh_bases(sh_deg) - 1)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import os
 from pathlib import Path
 
 import numpy as np
@@ -23,9 +25,28 @@ def oiio_path(path: Path) -> str:
     return text
 
 
+@contextlib.contextmanager
+def decoder_stderr_silenced():
+    """Decoder libraries (libpng, libjpeg) print their own lines on fd 2; our one error line says
+    it instead. Redirects the process's fd 2 for the duration (nothing else prints meanwhile)."""
+    try:
+        saved = os.dup(2)
+    except OSError:  # no fd 2 (embedded interpreters): nothing to silence
+        yield
+        return
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
 def image_size(path: Path) -> tuple[int, int]:
     """(width, height) from the header, without decoding pixels."""
-    inp = oiio.ImageInput.open(oiio_path(path))
+    with decoder_stderr_silenced():
+        inp = oiio.ImageInput.open(oiio_path(path))
     if inp is None:
         raise InputError(f"cannot read image ({_oiio_error()})", path)
     spec = inp.spec()
@@ -37,21 +58,23 @@ def read_image(path: Path, max_pixels: int | None = None) -> np.ndarray:
     """Decode an image to float32 [H, W, C] in [0, 1] (C = 1, 3 or 4; 8/16-bit or float files)."""
     if not path.is_file():
         raise InputError("image file not found", path)
-    inp = oiio.ImageInput.open(oiio_path(path))
-    if inp is None:
-        raise InputError(f"cannot read image ({_oiio_error()})", path)
-    try:
-        spec = inp.spec()
-        if max_pixels is not None and spec.width * spec.height > max_pixels:
-            raise InputError(
-                f"image is {spec.width}x{spec.height}, above the limit of {max_pixels} pixels "
-                "(raise it with --max-pixels)", path)
-        data = inp.read_image(0, 0, 0, spec.nchannels, "float")
-        err = inp.geterror() if hasattr(inp, "geterror") else ""
-    finally:
-        inp.close()
+    with decoder_stderr_silenced():
+        inp = oiio.ImageInput.open(oiio_path(path))
+        if inp is None:
+            raise InputError(f"cannot read image ({_oiio_error()})", path)
+        try:
+            spec = inp.spec()
+            if max_pixels is not None and spec.width * spec.height > max_pixels:
+                raise InputError(
+                    f"image is {spec.width}x{spec.height}, above the limit of {max_pixels} pixels "
+                    "(raise it with --max-pixels)", path)
+            data = inp.read_image(0, 0, 0, spec.nchannels, "float")
+            err = inp.geterror() if hasattr(inp, "geterror") else ""
+        finally:
+            inp.close()
     if data is None or not isinstance(data, np.ndarray) or err:
-        raise InputError(f"truncated or corrupt image ({err or _oiio_error() or 'no pixel data'})", path)
+        why = one_line(err) or _oiio_error() or "no pixel data"
+        raise InputError(f"truncated or corrupt image ({why})", path)
     if data.ndim == 2:
         data = data[..., None]
     if not np.isfinite(data).all():
@@ -101,6 +124,17 @@ def downscale(rgb: np.ndarray, mask: np.ndarray | None, k: int) -> tuple[np.ndar
     return out.astype(np.float32), a.astype(np.float32)
 
 
+def write_gif(path: Path, frames: list[np.ndarray], fps: float = 20.0) -> None:
+    """Frames [H, W, 3] float in [0, 1] -> a looping animated GIF (Pillow, which matplotlib brings)."""
+    from PIL import Image
+
+    if not frames:
+        raise ValueError("write_gif: no frames")
+    imgs = [Image.fromarray((np.clip(f[..., :3], 0, 1) * 255 + 0.5).astype(np.uint8)) for f in frames]
+    with atomic_path(path) as tmp:
+        imgs[0].save(tmp, format="GIF", save_all=True, append_images=imgs[1:], duration=round(1000 / fps), loop=0)
+
+
 def write_png(path: Path, img: np.ndarray) -> None:
     """Write [H, W] or [H, W, C] float in [0, 1] as an 8-bit PNG (atomically)."""
     if img.ndim == 2:
@@ -127,5 +161,11 @@ def find_with_stem(folder: Path, stem: str) -> Path | None:
     return None
 
 
+def one_line(text: str) -> str:
+    """A library's multi-line message as one line, repeated lines dropped."""
+    lines = [ln.strip() for ln in (text or "").splitlines() if ln.strip()]
+    return "; ".join(dict.fromkeys(lines))
+
+
 def _oiio_error() -> str:
-    return (oiio.geterror() or "").strip().replace("\n", " ")
+    return one_line(oiio.geterror())

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from ..errors import WgsError
 from ..progress import log
 
 
@@ -132,8 +133,11 @@ def register(cli, stage_common, workspace_option) -> None:
         """Run every stage on SCENE (each skipped when up to date) and print the summary."""
         from ..pipeline import print_summary, run_all
 
-        if obj.workspace is None:
-            obj.workspace = Path(scene).with_name(Path(scene).name + "_wgs")
+        scene = Path(scene).resolve()  # messages name the folder, not "."
+        if obj.workspace is None:  # beside the scene folder: SCENE_wgs (`wgs all .` too)
+            if not scene.name:
+                raise WgsError("no workspace name for the root folder: pass -w/--workspace DIR")
+            obj.workspace = scene.with_name(scene.name + "_wgs")
             log(f"workspace: {obj.workspace}")
         overrides = {"prepare": {"views": views, "downscale": downscale}, "mask_data": {"strategy": strategy},
                      "finetune": {"domain": domain, "use_u": False if no_u else None, "prior": prior}}
@@ -230,13 +234,19 @@ def register(cli, stage_common, workspace_option) -> None:
         results.print((root / "ablation.md").read_text())
 
     @cli.command()
-    @click.option("--stage", "stage", type=click.Choice(["coarse", "fine"]), default="coarse", help="Which model.")
+    @click.option("--stage", "stage", type=click.Choice(["coarse", "fine"]), default=None,
+                  help="Which model (default: the newest, fine when it exists).")
     @click.option("--views", type=click.Choice(["test", "train", "path"]), default="test", help="Cameras to render.")
     @click.option("--frames", type=int, default=60, help="Number of frames for --views path.")
+    @click.option("--video", is_flag=True,
+                  help="Also write the frames as an animated GIF (a turntable with --views path).")
     @workspace_option
     @click.pass_obj
-    def render(obj, stage, views, frames):
+    def render(obj, stage, views, frames, video):
         """Render a trained model to PNGs under WS/renders/STAGE_VIEWS/."""
         from .render_views import run_render
 
-        run_render(obj.ws(), stage, views, frames, obj.torch_device())
+        ws = obj.ws()
+        if stage is None:
+            stage = "fine" if ws.manifest("fine") is not None else "coarse"
+        run_render(ws, stage, views, frames, obj.torch_device(), video)

@@ -9,7 +9,7 @@ from ..gaussians.splats import load_checkpoint
 from ..gaussians.trainer import render_frame
 from ..progress import log
 from ..scene.dataset import load_prepared
-from ..scene.images import write_png
+from ..scene.images import write_gif, write_png
 from ..scene.orbit import orbit_frames
 from ..workspace import Workspace
 from .s1_coarse import CKPT, background_for
@@ -17,7 +17,8 @@ from .s1_coarse import CKPT, background_for
 STAGE_CKPT = {"coarse": ("coarse", CKPT), "fine": ("fine", CKPT)}
 
 
-def run_render(ws: Workspace, stage: str, views: str, n_frames: int, device: torch.device) -> None:
+def run_render(ws: Workspace, stage: str, views: str, n_frames: int, device: torch.device,
+               video: bool = False) -> None:
     src, ckpt = STAGE_CKPT[stage]
     if ws.manifest(src) is None:
         raise InputError(f"stage '{stage}' has not run yet", ws.stage_dir(src))
@@ -26,7 +27,12 @@ def run_render(ws: Workspace, stage: str, views: str, n_frames: int, device: tor
     frames = {"train": scene.train, "test": scene.test, "path": orbit_frames(scene.train, n_frames)}[views]
     out = ws.root / "renders" / f"{stage}_{views}"
     bg = background_for(scene)
+    images = []
     for f in frames:
         rgb, _ = render_frame(splats, f, device, bg)
         write_png(out / f.name, rgb.numpy())
+        images.append(rgb.numpy())
     log(f"render: {len(frames)} images in {out}")
+    if video:
+        write_gif(out.with_suffix(".gif"), images)
+        log(f"render: animation {out.with_suffix('.gif')}")

@@ -7,7 +7,7 @@ import torch
 from ..config import CoarseConfig, TrainConfig, as_dict
 from ..errors import InputError
 from ..gaussians.init import knn_mean_distance, random_init, visual_hull
-from ..gaussians.splats import Splats, create_splats, export_ply, save_checkpoint, to_world
+from ..gaussians.splats import VIEWER_SH_DEGREE, Splats, create_splats, export_ply, save_checkpoint, to_world
 from ..gaussians.trainer import render_frame, train_gaussians
 from ..metrics import psnr
 from ..progress import log
@@ -76,7 +76,7 @@ def run_coarse(ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: int
             res = train_gaussians(splats, scene.train, cfg, device, extent=1.0, desc="coarse", seed=seed,
                                   has_masks=scene.has_masks, checkpoint=run.checkpointer("gc"))
             save_checkpoint(run.path(CKPT), res.splats, scene.norm, res.iterations)
-            n_ply = export_ply(run.path(PLY), to_world(res.splats, scene.norm))
+            n_ply = export_ply(run.path(PLY), to_world(res.splats, scene.norm), VIEWER_SH_DEGREE)
             per_view = write_coarse_outputs(run, scene, res.splats, device)
             atomic_write_json(run.path("train_psnr.json"), per_view)
             mean_psnr = sum(per_view.values()) / len(per_view)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from ..config import FineConfig, RepairConfig, as_dict
-from ..gaussians.splats import export_ply, load_checkpoint, save_checkpoint, to_world
+from ..gaussians.splats import VIEWER_SH_DEGREE, export_ply, load_checkpoint, save_checkpoint, to_world
 from ..gaussians.trainer import PseudoViews, render_frame, train_gaussians
 from ..progress import log
 from ..scene.dataset import Frame, load_prepared
@@ -94,7 +94,7 @@ def run_fine(ws: Workspace, cfg: FineConfig, device: torch.device, seed: int, fo
                                       has_masks=scene.has_masks, pseudo=pseudo,
                                       checkpoint=run.checkpointer("gf" if r == 1 else f"gf{r}"))
             save_checkpoint(run.path(CKPT), res.splats, scene.norm, res.iterations)
-            n = export_ply(run.path(PLY), to_world(res.splats, scene.norm))
+            n = export_ply(run.path(PLY), to_world(res.splats, scene.norm), VIEWER_SH_DEGREE)
             run.record.update({"num_gaussians": n, "iterations": res.iterations, "num_pseudo": len(frames),
                                "rounds": max(1, cfg.rounds),
                                "train_seconds": round(res.seconds, 2), "final_loss": res.losses[-1], "seed": seed})

@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import statistics
 import time
+from pathlib import Path
 from typing import Any
 
 import torch
 
+from .. import __version__
 from ..config import EvalConfig, as_dict
 from ..errors import InputError
 from ..gaussians.splats import load_checkpoint
@@ -17,7 +19,8 @@ from ..lpips import LPIPS, LpipsUnavailable
 from ..metrics import psnr, ssim
 from ..progress import log, progress_bar
 from ..scene.dataset import composite, load_prepared
-from ..scene.images import write_png
+from ..scene.images import write_gif, write_png
+from ..scene.orbit import orbit_frames
 from ..workspace import STAGE_DIRS, StageRun, Workspace, atomic_write_bytes, atomic_write_json
 from .s1_coarse import CKPT, background_for
 
@@ -138,6 +141,39 @@ def plot_error_vs_time(path, times, coarse, fine) -> None:
     plt.close(fig)
 
 
+def write_html(run: StageRun, ws: Workspace, frames, bg, pers: dict, results: dict, eval_s: float,
+               lpips_note: str | None, gain: dict | None) -> None:
+    """report.html beside report.md: the same table plus the views and sheets (wgs/report_html.py)."""
+    from ..report_html import error_sheet, worst_and_best, write_report_html
+    from ..scene.images import read_image
+
+    per_fine = pers.get("fine") or pers.get("coarse") or {"psnr": {}, "ssim": {}}
+    by_name = {f.name: f for f in frames}
+    sheets = []
+    for label, name in worst_and_best(per_fine["psnr"]):
+        rendered = run.path("renders", name)
+        if not rendered.is_file():
+            continue
+        f = by_name[name]
+        sheet = error_sheet(read_image(rendered)[..., :3], composite(f.image, f.mask, bg).numpy())
+        out = run.path("sheets", f"{label}_{name}")
+        write_png(out, sheet)
+        sheets.append((label, name, out))
+    notes = [f"Quality on {results['fine'].get('num_views')} test views (mean over views); coarse = G_c, "
+             f"fine = G_f. Evaluation took {eval_s:.0f} s."]
+    if gain is not None:
+        notes.append(f"Repair gain at the test poses: {gain['gain_db']:+.2f} dB (G_c render "
+                     f"{gain['psnr_render']:.2f} -> repaired {gain['psnr_repaired']:.2f} dB).")
+    if lpips_note:
+        notes.append(f"LPIPS not computed: {lpips_note}")
+    contact = ws.stage_dir("repair") / "contact_sheet.png"
+    write_report_html(run.path("report.html"), title=f"wgs report: {ws.root.name}", times=stage_times(ws),
+                      coarse=results["coarse"], fine=results["fine"], per_fine=per_fine,
+                      per_coarse=pers.get("coarse", {}), sheets=sheets, plot=run.path("error_vs_time.png"),
+                      contact_sheet=contact if contact.is_file() else None, notes=notes,
+                      turntable=run.path("turntable.gif"))
+
+
 def run_eval(ws: Workspace, cfg: EvalConfig, device: torch.device, force: bool = False,
              final: str = "fine", seed: int = 0) -> bool:
     """Evaluate `final` (fine, or coarse when the repair stages were left out) and G_c."""
@@ -158,7 +194,7 @@ def run_eval(ws: Workspace, cfg: EvalConfig, device: torch.device, force: bool =
         bg = background_for(scene)
         with ws.stage_run("eval", config, fp) as run:
             t0 = time.perf_counter()
-            results, gain = {}, None
+            results, gain, pers = {}, None, {}
             for key, st in (("fine", final), ("coarse", "coarse")):
                 if key == "coarse" and final == "coarse":
                     results["coarse"] = results["fine"]
@@ -167,6 +203,7 @@ def run_eval(ws: Workspace, cfg: EvalConfig, device: torch.device, force: bool =
                 out = run.path("renders", "x").parent if key == "fine" else None
                 per = evaluate_model(splats, frames, device, bg, lpips_fn, out, desc=f"eval {st}")
                 atomic_write_json(run.path("per_view.json" if key == "fine" else "per_view_coarse.json"), per)
+                pers[key] = per
                 results[key] = {**summarise(per), "num_gaussians": int(splats["means"].shape[0]),
                                 "num_views": len(frames)}
                 if key == "coarse" and cfg.repair_gain and final == "fine" and ws.manifest("finetune"):
@@ -177,9 +214,22 @@ def run_eval(ws: Workspace, cfg: EvalConfig, device: torch.device, force: bool =
                    "lpips_unavailable": lpips_note, "metrics": METRICS_DOC,
                    "lpips_weights": lpips_fn.sources if lpips_fn else None,
                    "stage_times_s": {r["stage"]: r["wall_time_s"] for r in stage_times(ws)}}
+            source = ((ws.manifest("scene") or {}).get("summary") or {}).get("source")
+            res.update({"scene": source, "method": "wgs" if final == "fine" else "wgs-coarse-only",
+                        "version": __version__, "seed": seed,
+                        # the nerfstudio `ns-eval` layout, for tools that read it
+                        "experiment_name": Path(str(source)).name if source else ws.root.name,
+                        "method_name": "wgs", "checkpoint": str(ws.stage_dir(final) / CKPT),
+                        "results": {k: results["fine"][k] for k in ("psnr", "psnr_std", "ssim", "ssim_std",
+                                                                    "lpips", "lpips_std") if k in results["fine"]}})
             atomic_write_json(run.path("results.json"), res)
             write_report(run, stage_times(ws), results["coarse"], results["fine"], time.perf_counter() - t0,
                          lpips_note)
+            if cfg.turntable_frames > 0:
+                final_splats, _ = load_checkpoint(ws.stage_dir(final) / CKPT, scene.norm, device)
+                write_gif(run.path("turntable.gif"), [render_frame(final_splats, f, device, bg)[0].numpy()
+                                                      for f in orbit_frames(scene.train, cfg.turntable_frames)])
+            write_html(run, ws, frames, bg, pers, results, time.perf_counter() - t0, lpips_note, gain)
             run.record.update({"psnr": res["psnr"], "ssim": res["ssim"], "lpips": res["lpips"],
                                "coarse_psnr": results["coarse"]["psnr"]})
     c, f = results["coarse"], results["fine"]
