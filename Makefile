@@ -31,7 +31,7 @@ examples/scene/transforms_train.json: examples/make_scene.py | $(VENV)/.base
 	$(BIN)/python examples/make_scene.py examples/scene
 
 demo: $(VENV)/.base examples/scene/transforms_train.json
-	$(BIN)/wgs -w $(DEMO_WS) all examples/scene --preset fast
+	$(BIN)/wgs -w $(DEMO_WS) all examples/scene --preset fast --baseline
 	@cat $(DEMO_WS)/6_eval/report.md
 
 test: $(VENV)/.installed

@@ -69,6 +69,11 @@ def test_workspace_contract_and_results(tiny):
     worst = min(per["psnr"], key=per["psnr"].get)
     assert page.index(worst) < page.index("Per view") and "Repair gain" in page
     assert page.count("src='data:image/gif;base64,") == 1  # the turntable
+    for stage in ("1_coarse", "5_fine"):  # quality against training time on probe views
+        curve = json.loads((ws.root / stage / "curve.json").read_text())
+        its = [p["iteration"] for p in curve["points"]]
+        assert its[0] == 0 and its == sorted(its) and len(its) >= 2 and len(curve["views"]) == 4
+        assert all(math.isfinite(p["psnr"]) for p in curve["points"])
     assert "| coarse |" in report and "| fine |" in report
     views = json.loads((ws.root / "4_repair/views.json").read_text())
     assert len(views["views"]) == 16 and views["used_u"] is True  # RepairConfig.num_views over the sphere
@@ -88,6 +93,25 @@ def test_render_defaults_to_the_newest_model(tiny):
 
     with Image.open(ws.root / "renders" / "fine_path.gif") as gif:
         assert gif.n_frames == 3 and gif.size == (64, 64)
+
+
+def test_eval_baseline_plain_3dgs_for_the_same_time(tiny, tmp_path):
+    _, cfg, ws0, _ = tiny
+    ws = tmp_path / "ws"
+    shutil.copytree(ws0.root, ws)
+    res = CliRunner().invoke(cli, ["-q", "--config", str(cfg), "-w", str(ws), "eval", "--baseline"],
+                             catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    out = json.loads((ws / "6_eval/results.json").read_text())
+    b = out["baseline_3dgs"]
+    assert math.isfinite(b["psnr"]) and b["budget_s"] > 0 and b["iterations"] > 0
+    assert b["train_seconds"] <= b["budget_s"] + 5.0
+    curve = json.loads((ws / "6_eval/baseline/curve.json").read_text())
+    assert curve["points"][0]["iteration"] == 0 and len(curve["points"]) >= 2
+    assert "Plain 3DGS for the same training time" in (ws / "6_eval/report.html").read_text()
+    # the plot's curves, also in results.json: coarse, fine and the baseline on one time axis
+    assert set(out["curves"]) == {"coarse", "fine", "plain 3DGS"}
+    assert out["curves"]["plain 3DGS"][0][0] == out["curves"]["coarse"][0][0]
 
 
 def test_second_run_recomputes_nothing_and_fine_option_reruns_fine_and_eval(tiny, tmp_path):

@@ -66,7 +66,16 @@ class TrainConfig:
 
 
 @dataclass
-class CoarseConfig(TrainConfig):
+class CurveConfig:
+    """Quality against time inside a training loop (curve.json): test PSNR / SSIM on a few fixed test
+    views every so many training seconds (the probe's own time is left out of the clock)."""
+
+    curve_every_s: float = 5.0  # 0: no curve
+    curve_views: int = 4
+
+
+@dataclass
+class CoarseConfig(CurveConfig, TrainConfig):
     iterations: int = 1500
 
 
@@ -134,7 +143,7 @@ class RepairConfig:
 
 
 @dataclass
-class FineConfig(TrainConfig):
+class FineConfig(CurveConfig, TrainConfig):
     """Refinement of G_c on the real and the pseudo references."""
 
     iterations: int = 1500
@@ -157,6 +166,9 @@ class EvalConfig:
     max_views: int | None = None  # evaluate on the first k test views only
     repair_gain: bool = True  # also repair G_c's renders at the test poses and score them (the repair's own gain)
     turntable_frames: int = 48  # a GIF of the final model on an orbit fitted to the training cameras; 0: none
+    # plain 3DGS (the coarse trainer, no repair) for the same training time as the pipeline, with its
+    # own curve on the error-against-time plot: what the time would have bought without WaveletGaussian
+    baseline: bool = False
 
 
 STAGES: dict[str, type] = {"prepare": PrepareConfig, "coarse": CoarseConfig, "mask_data": MaskDataConfig,

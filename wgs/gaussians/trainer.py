@@ -46,11 +46,22 @@ class PseudoViews:
 
 
 @dataclass
+class Probe:
+    """Quality during training: fn(splats) -> metrics (e.g. test PSNR), run every `every_s` seconds
+    of training time, at the start and at the end; its own time is left out of the training clock."""
+
+    fn: Callable[[Splats], dict[str, float]]
+    every_s: float
+
+
+@dataclass
 class TrainResult:
     splats: Splats
     iterations: int
     seconds: float
     losses: list[float] = field(default_factory=list)
+    curve: list[dict[str, float]] = field(default_factory=list)  # probe points: seconds, iteration, metrics
+    probe_seconds: float = 0.0
 
 
 def make_optimizers(params: Splats, cfg: TrainConfig, extent: float) -> dict[str, torch.optim.Optimizer]:
@@ -79,13 +90,15 @@ def photometric_loss(render: torch.Tensor, target: torch.Tensor, ssim_weight: fl
 def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, device: torch.device, *, extent: float,
                     desc: str = "train", seed: int = 0, pixel_weights: PixelWeights | None = None,
                     has_masks: bool = True, on_step: Callable[[int, Splats], None] | None = None,
-                    pseudo: PseudoViews | None = None, checkpoint: Checkpointer | None = None) -> TrainResult:
+                    pseudo: PseudoViews | None = None, checkpoint: Checkpointer | None = None,
+                    probe: Probe | None = None) -> TrainResult:
     """Optimise `splats` (raw, normalised world) on `frames` (with images). Returns the new splats.
 
     pixel_weights(i, it) -> [H, W] supervision weights for frame i (None: all pixels count);
     on_step(it, params) is called after every iteration with the current (detached) parameters.
     pseudo: extra views trained with L1 + L2 (+ LPIPS) every `pseudo.every` iterations.
     checkpoint: saves the full state periodically, at the end and on Ctrl-C; continues from it on --resume.
+    probe: measured at the start, every `probe.every_s` training seconds and at the end (TrainResult.curve).
     """
     params = {k: v.detach().to(device).clone().requires_grad_(True) for k, v in splats.items()}
     optimizers = make_optimizers(params, cfg, extent)
@@ -103,6 +116,8 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
     it = 0
     sched = prev_sched = 0  # schedule position: the iteration, or the time fraction of a time budget
     finished = False
+    curve: list[dict[str, float]] = []
+    probe_s = 0.0
     saved = checkpoint.load() if checkpoint is not None else None
     if saved is not None:
         params = {k: v.to(device).requires_grad_(True) for k, v in saved["params"].items()}
@@ -116,11 +131,24 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
         losses, order, it, sched = list(saved["losses"]), list(saved["order"]), saved["it"], saved["sched"]
         t0 -= saved["elapsed"]
         finished = saved["finished"]
+        curve, probe_s = list(saved.get("curve", [])), saved.get("probe_s", 0.0)
+
+    def measure() -> None:
+        """One probe point; the clock is moved on by the probe's own time."""
+        nonlocal t0, probe_s
+        t_start = time.perf_counter()
+        with torch.no_grad():
+            metrics = probe.fn({k: v.detach() for k, v in params.items()})
+        curve.append({"seconds": round(t_start - t0, 3), "iteration": it, **metrics})
+        took = time.perf_counter() - t_start
+        t0 += took
+        probe_s += took
 
     def snapshot() -> dict:
         out = {"params": {k: v.detach().cpu() for k, v in params.items()},
                "generator": gen.get_state(), "rng": rng_state(), "losses": losses, "order": order,
-               "it": it, "sched": sched, "elapsed": time.perf_counter() - t0, "finished": finished}
+               "it": it, "sched": sched, "elapsed": time.perf_counter() - t0, "finished": finished,
+               "curve": curve, "probe_s": probe_s}
         if not finished:  # a finished loop needs no moments: its final save stays the size of the model
             out["optimizers"] = {k: o.state_dict() for k, o in optimizers.items()}
             out["strategy"] = {k: (None if v is None else v.cpu()) for k, v in state.items()}
@@ -128,6 +156,8 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
 
     with progress_bar(desc, cfg.iterations) as prog, deferred_sigint():
         prog.update(0, completed=it)
+        if probe is not None and not curve:
+            measure()
         for it in range(it + 1, (it if finished else cfg.iterations) + 1):  # noqa: B020 - resumes the count
             adapt_threads()
             prev_sched = sched
@@ -184,13 +214,15 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
                 prog.update(0, completed=it, status=f"loss {sum(recent) / len(recent):.4f}  "
                             f"{params['means'].shape[0]} gaussians  {rate:.1f} it/s")
             finished = it == cfg.iterations or bool(cfg.max_seconds and time.perf_counter() - t0 > cfg.max_seconds)
+            if probe is not None and (finished or time.perf_counter() - t0 - curve[-1]["seconds"] >= probe.every_s):
+                measure()
             if checkpoint is not None and (finished or checkpoint.due()):
                 checkpoint.save(snapshot())
             check_interrupt(desc, it, checkpoint, snapshot)
             if finished:
                 break
     out = {k: v.detach() for k, v in params.items()}
-    return TrainResult(out, it, time.perf_counter() - t0, losses)
+    return TrainResult(out, it, time.perf_counter() - t0, losses, curve, probe_s)
 
 
 def pseudo_loss(params: Splats, pseudo: PseudoViews, it: int, sched: int, deg: int, device: torch.device

@@ -50,6 +50,17 @@ class PreparedScene:
         return bool(self.info.get("has_masks"))
 
 
+def load_frame_images(ws: Workspace, frames: list[Frame]) -> list[Frame]:
+    """The frames with their image (and mask, when the scene has one) read from the prepared scene."""
+    sdir = ws.stage_dir("scene")
+    for f in frames:
+        f.image = torch.from_numpy(read_image(sdir / "images" / f.name)[..., :3].copy())
+        mpath = sdir / "masks" / f.name
+        if mpath.is_file():
+            f.mask = torch.from_numpy(read_image(mpath)[..., 0].copy())
+    return frames
+
+
 def load_prepared(ws: Workspace, load_test_images: bool = False) -> PreparedScene:
     sdir = ws.stage_dir("scene")
     if ws.manifest("scene") is None:
@@ -64,13 +75,8 @@ def load_prepared(ws: Workspace, load_test_images: bool = False) -> PreparedScen
                 raise InputError(f"image {n} is not in the COLMAP model", sdir / "sparse")
             K, w2c, w, h = model[n]
             f = Frame(n, torch.tensor(K, dtype=torch.float32), torch.tensor(w2c, dtype=torch.float32), w, h)
-            if with_images:
-                f.image = torch.from_numpy(read_image(sdir / "images" / n)[..., :3].copy())
-                mpath = sdir / "masks" / n
-                if mpath.is_file():
-                    f.mask = torch.from_numpy(read_image(mpath)[..., 0].copy())
             out.append(f)
-        return out
+        return load_frame_images(ws, out) if with_images else out
 
     return PreparedScene(info, Normalisation.from_json(info["normalisation"]),
                          frames(info["train_names"], True), frames(info["test_names"], load_test_images))

@@ -106,14 +106,17 @@ def register(cli, stage_common, workspace_option) -> None:
     @click.option("--lpips-weights", type=click.Path(path_type=str), default=None,
                   help="Folder with the LPIPS weights (else $WGS_LPIPS_WEIGHTS, $TORCH_HOME/hub/checkpoints).")
     @click.option("--max-views", type=int, default=None, help="Evaluate on the first N test views only.")
+    @click.option("--baseline", is_flag=True, default=None,
+                  help="Also train plain 3DGS for the pipeline's training time and plot its curve.")
     @stage_common
     @click.pass_obj
-    def eval_(obj, lpips_net, lpips_weights, max_views, force, preset):
+    def eval_(obj, lpips_net, lpips_weights, max_views, baseline, force, preset):
         """PSNR, SSIM, LPIPS of G_f and G_c on the test views, and the error-against-time report."""
         from .s6_eval import run_eval
 
         final = "fine" if obj.ws().manifest("fine") is not None else "coarse"
-        cfg = obj.config("eval", preset, lpips_net=lpips_net, lpips_weights=lpips_weights, max_views=max_views)
+        cfg = obj.config("eval", preset, lpips_net=lpips_net, lpips_weights=lpips_weights, max_views=max_views,
+                         baseline=baseline)
         run_eval(obj.ws(), cfg, obj.torch_device(), force=force, final=final, seed=obj.seed)
 
     @cli.command("all")
@@ -127,9 +130,11 @@ def register(cli, stage_common, workspace_option) -> None:
     @click.option("--prior", default=None, metavar="builtin|none|DIR",
                   help="Repair prior of D and U: builtin (default), none (from scratch), or a folder.")
     @click.option("--force-repair", is_flag=True, help="Run the repair stages even with many training views.")
+    @click.option("--baseline", is_flag=True, default=None,
+                  help="Also train plain 3DGS for the same training time and plot its curve (eval).")
     @stage_common
     @click.pass_obj
-    def all_(obj, scene, views, downscale, strategy, domain, no_u, prior, force_repair, force, preset):
+    def all_(obj, scene, views, downscale, strategy, domain, no_u, prior, force_repair, baseline, force, preset):
         """Run every stage on SCENE (each skipped when up to date) and print the summary."""
         from ..pipeline import print_summary, run_all
 
@@ -140,7 +145,8 @@ def register(cli, stage_common, workspace_option) -> None:
             obj.workspace = scene.with_name(scene.name + "_wgs")
             log(f"workspace: {obj.workspace}")
         overrides = {"prepare": {"views": views, "downscale": downscale}, "mask_data": {"strategy": strategy},
-                     "finetune": {"domain": domain, "use_u": False if no_u else None, "prior": prior}}
+                     "finetune": {"domain": domain, "use_u": False if no_u else None, "prior": prior},
+                     "eval": {"baseline": baseline}}
         outcomes = run_all(obj, scene, preset, force, force_repair, overrides)
         print_summary(obj.ws(), outcomes)
 

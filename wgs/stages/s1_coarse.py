@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 
 from ..config import CoarseConfig, TrainConfig, as_dict
+from ..curves import CURVE, test_probe, write_curve
 from ..errors import InputError
 from ..gaussians.init import knn_mean_distance, random_init, visual_hull
 from ..gaussians.splats import VIEWER_SH_DEGREE, Splats, create_splats, export_ply, save_checkpoint, to_world
@@ -72,9 +73,12 @@ def run_coarse(ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: int
         splats = initial_splats(scene, cfg, seed)
         log(f"coarse: {splats['means'].shape[0]} initial Gaussians, {len(scene.train)} views, "
             f"{cfg.iterations} iterations on {device}")
+        probe, probe_names = test_probe(ws, scene, cfg.curve_every_s, cfg.curve_views, background_for(scene), device)
         with ws.stage_run("coarse", config, fp) as run:
             res = train_gaussians(splats, scene.train, cfg, device, extent=1.0, desc="coarse", seed=seed,
-                                  has_masks=scene.has_masks, checkpoint=run.checkpointer("gc"))
+                                  has_masks=scene.has_masks, checkpoint=run.checkpointer("gc"), probe=probe)
+            if probe is not None:
+                write_curve(run.path(CURVE), res, probe_names)
             save_checkpoint(run.path(CKPT), res.splats, scene.norm, res.iterations)
             n_ply = export_ply(run.path(PLY), to_world(res.splats, scene.norm), VIEWER_SH_DEGREE)
             per_view = write_coarse_outputs(run, scene, res.splats, device)

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 
 from ..config import FineConfig, RepairConfig, as_dict
+from ..curves import CURVE, test_probe, write_curve
 from ..gaussians.splats import VIEWER_SH_DEGREE, export_ply, load_checkpoint, save_checkpoint, to_world
 from ..gaussians.trainer import PseudoViews, render_frame, train_gaussians
 from ..progress import log
@@ -81,8 +84,9 @@ def run_fine(ws: Workspace, cfg: FineConfig, device: torch.device, seed: int, fo
         bg = background_for(scene)
         lpips_fn = lpips_for_training(cfg, device)
         torch.manual_seed(seed)
+        probe, probe_names = test_probe(ws, scene, cfg.curve_every_s, cfg.curve_views, bg, device)
         with ws.stage_run("fine", config, fp) as run:
-            res = None
+            res, curve, probe_s, offset = None, [], 0.0, 0.0
             for r in range(1, max(1, cfg.rounds) + 1):
                 if res is not None:  # a later round: start from the refined model and its repaired renders
                     splats = res.splats
@@ -92,7 +96,13 @@ def run_fine(ws: Workspace, cfg: FineConfig, device: torch.device, seed: int, fo
                 res = train_gaussians(splats, scene.train, cfg, device, extent=1.0,
                                       desc="fine" if cfg.rounds == 1 else f"fine round {r}", seed=seed + r - 1,
                                       has_masks=scene.has_masks, pseudo=pseudo,
-                                      checkpoint=run.checkpointer("gf" if r == 1 else f"gf{r}"))
+                                      checkpoint=run.checkpointer("gf" if r == 1 else f"gf{r}"), probe=probe)
+                # rounds follow each other on one time axis
+                curve += [{**p, "seconds": round(p["seconds"] + offset, 3), "round": r} for p in res.curve]
+                probe_s += res.probe_seconds
+                offset += res.seconds
+            if probe is not None:
+                write_curve(run.path(CURVE), dataclasses.replace(res, curve=curve, probe_seconds=probe_s), probe_names)
             save_checkpoint(run.path(CKPT), res.splats, scene.norm, res.iterations)
             n = export_ply(run.path(PLY), to_world(res.splats, scene.norm), VIEWER_SH_DEGREE)
             run.record.update({"num_gaussians": n, "iterations": res.iterations, "num_pseudo": len(frames),

@@ -3,6 +3,7 @@ and the error-against-run-time report."""
 
 from __future__ import annotations
 
+import dataclasses
 import statistics
 import time
 from pathlib import Path
@@ -11,10 +12,11 @@ from typing import Any
 import torch
 
 from .. import __version__
-from ..config import EvalConfig, as_dict
+from ..config import CoarseConfig, EvalConfig, as_dict
+from ..curves import CURVE, read_curve, test_probe, write_curve
 from ..errors import InputError
-from ..gaussians.splats import load_checkpoint
-from ..gaussians.trainer import render_frame
+from ..gaussians.splats import load_checkpoint, save_checkpoint
+from ..gaussians.trainer import render_frame, train_gaussians
 from ..lpips import LPIPS, LpipsUnavailable
 from ..metrics import psnr, ssim
 from ..progress import log, progress_bar
@@ -22,7 +24,7 @@ from ..scene.dataset import composite, load_prepared
 from ..scene.images import write_gif, write_png
 from ..scene.orbit import orbit_frames
 from ..workspace import STAGE_DIRS, StageRun, Workspace, atomic_write_bytes, atomic_write_json
-from .s1_coarse import CKPT, background_for
+from .s1_coarse import CKPT, background_for, initial_splats
 
 METRICS_DOC = {
     "psnr": "mean over views of per-view PSNR (dB), images in [0, 1] on the dataset background",
@@ -103,7 +105,7 @@ def fmt(v: float | None, nd: int = 3) -> str:
 
 
 def write_report(run: StageRun, times: list[dict[str, Any]], coarse: dict, fine: dict, eval_s: float,
-                 lpips_note: str | None) -> None:
+                 lpips_note: str | None, curves: dict[str, list[tuple[float, float]]] | None = None) -> None:
     total = (times[-1]["cumulative_s"] if times else 0.0) + eval_s
     lines = ["# wgs report: error against run time", "",
              "| stage | wall time (s) | cumulative (s) | peak memory (MiB) | PSNR | SSIM | LPIPS |",
@@ -119,10 +121,29 @@ def write_report(run: StageRun, times: list[dict[str, Any]], coarse: dict, fine:
     if lpips_note:
         lines += [f"LPIPS not computed: {lpips_note}", ""]
     atomic_write_bytes(run.path("report.md"), "\n".join(lines).encode())
-    plot_error_vs_time(run.path("error_vs_time.png"), times, coarse, fine)
+    plot_error_vs_time(run.path("error_vs_time.png"), times, coarse, fine, curves)
 
 
-def plot_error_vs_time(path, times, coarse, fine) -> None:
+def curve_points(ws: Workspace, times: list[dict[str, Any]], baseline: Path | None = None
+                 ) -> dict[str, list[tuple[float, float]]]:
+    """Each training stage's probe curve as (cumulative wall time s, test PSNR) from its curve.json;
+    a stage's points start where the stage started; the plain-3DGS baseline's (`baseline`: its
+    curve.json) where coarse did."""
+    start = {r["stage"]: r["cumulative_s"] - r["wall_time_s"] for r in times}
+    out = {}
+    for stage in ("coarse", "fine"):
+        c = read_curve(ws.stage_dir(stage) / CURVE)
+        if c and stage in start:
+            out[stage] = [(start[stage] + p["seconds"], p["psnr"]) for p in c["points"]]
+    c = read_curve(baseline) if baseline is not None else None
+    if c and "coarse" in start:
+        out["plain 3DGS"] = [(start["coarse"] + p["seconds"], p["psnr"]) for p in c["points"]]
+    return out
+
+
+def plot_error_vs_time(path, times, coarse, fine, curves: dict[str, list[tuple[float, float]]] | None = None) -> None:
+    """Test PSNR against cumulative wall time: the training curves (on a few probe views) with stage
+    boundaries, and the final evaluation of G_c and G_f (all test views) as points."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -130,12 +151,18 @@ def plot_error_vs_time(path, times, coarse, fine) -> None:
 
     cum = {r["stage"]: r["cumulative_s"] for r in times}
     pts = [(cum[s], q["psnr"], s) for s, q in (("coarse", coarse), ("fine", fine)) if s in cum and q["psnr"]]
-    fig, ax = plt.subplots(figsize=(5, 3.2))
+    fig, ax = plt.subplots(figsize=(6, 3.6))
+    for stage, xy in (curves or {}).items():
+        ax.plot([p[0] for p in xy], [p[1] for p in xy], ".-", lw=1, label=f"{stage} training (probe views)")
+    for r in times:
+        ax.axvline(r["cumulative_s"], color="grey", lw=0.5, ls=":")
     if pts:
-        ax.plot([p[0] for p in pts], [p[1] for p in pts], "o-")
+        ax.plot([p[0] for p in pts], [p[1] for p in pts], "o", color="k", label="eval (all test views)")
         for x, y, s in pts:
             ax.annotate(s, (x, y), textcoords="offset points", xytext=(4, 4))
     ax.set(xlabel="cumulative wall time (s)", ylabel="test PSNR (dB)", title="error against run time")
+    if curves or pts:
+        ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
@@ -164,6 +191,11 @@ def write_html(run: StageRun, ws: Workspace, frames, bg, pers: dict, results: di
     if gain is not None:
         notes.append(f"Repair gain at the test poses: {gain['gain_db']:+.2f} dB (G_c render "
                      f"{gain['psnr_render']:.2f} -> repaired {gain['psnr_repaired']:.2f} dB).")
+    b = results.get("baseline_3dgs")
+    if b is not None:
+        notes.append(f"Plain 3DGS for the same training time ({b['train_seconds']:.0f} s, no repair): PSNR "
+                     f"{fmt(b['psnr'], 2)} dB, SSIM {fmt(b['ssim'])} "
+                     f"(final model: {fmt(results['fine']['psnr'], 2)} dB).")
     if lpips_note:
         notes.append(f"LPIPS not computed: {lpips_note}")
     contact = ws.stage_dir("repair") / "contact_sheet.png"
@@ -172,6 +204,29 @@ def write_html(run: StageRun, ws: Workspace, frames, bg, pers: dict, results: di
                       per_coarse=pers.get("coarse", {}), sheets=sheets, plot=run.path("error_vs_time.png"),
                       contact_sheet=contact if contact.is_file() else None, notes=notes,
                       turntable=run.path("turntable.gif"))
+
+
+def train_baseline(run: StageRun, ws: Workspace, scene, times: list[dict[str, Any]], device: torch.device,
+                   seed: int) -> tuple[Any, dict[str, Any]]:
+    """Plain 3DGS: the coarse stage's trainer and settings, no repair, for the training time the
+    pipeline took (coarse .. fine), with its curve. Returns its splats and a record."""
+    base = CoarseConfig(**{k: v for k, v in ((ws.manifest("coarse") or {}).get("config") or {}).items()
+                           if k in CoarseConfig.__dataclass_fields__})
+    budget = sum(r["wall_time_s"] for r in times if r["stage"] != "scene")
+    coarse_s = next((r["wall_time_s"] for r in times if r["stage"] == "coarse"), budget)
+    scale = max(1.0, budget / max(coarse_s, 1e-6))
+    # the time budget decides; iterations are an upper bound and the schedules follow elapsed time
+    cfg = dataclasses.replace(base, iterations=int(base.iterations * scale * 2), max_seconds=budget,
+                              refine_stop=int(base.refine_stop * scale))
+    probe, names = test_probe(ws, scene, cfg.curve_every_s, cfg.curve_views, background_for(scene), device)
+    res = train_gaussians(initial_splats(scene, cfg, seed), scene.train, cfg, device, extent=1.0,
+                          desc="eval: plain 3DGS baseline", seed=seed, has_masks=scene.has_masks,
+                          checkpoint=run.checkpointer("baseline"), probe=probe)
+    save_checkpoint(run.path("baseline", CKPT), res.splats, scene.norm, res.iterations)
+    if probe is not None:
+        write_curve(run.path("baseline", CURVE), res, names)
+    return res.splats, {"budget_s": round(budget, 1), "train_seconds": round(res.seconds, 1),
+                        "iterations": res.iterations}
 
 
 def run_eval(ws: Workspace, cfg: EvalConfig, device: torch.device, force: bool = False,
@@ -208,7 +263,13 @@ def run_eval(ws: Workspace, cfg: EvalConfig, device: torch.device, force: bool =
                                 "num_views": len(frames)}
                 if key == "coarse" and cfg.repair_gain and final == "fine" and ws.manifest("finetune"):
                     gain = measure_repair_gain(ws, splats, frames, device, bg, seed)
+            if cfg.baseline:
+                b_splats, b_record = train_baseline(run, ws, scene, stage_times(ws), device, seed)
+                per = evaluate_model(b_splats, frames, device, bg, lpips_fn, desc="eval baseline")
+                results["baseline_3dgs"] = {**summarise(per), **b_record,
+                                            "num_gaussians": int(b_splats["means"].shape[0])}
             res = {**results["fine"], "final_model": final, "coarse": results["coarse"],
+                   "baseline_3dgs": results.get("baseline_3dgs"),
                    "repair_gain": gain,
                    "lpips_net": cfg.lpips_net if lpips_fn else None,
                    "lpips_unavailable": lpips_note, "metrics": METRICS_DOC,
@@ -222,9 +283,11 @@ def run_eval(ws: Workspace, cfg: EvalConfig, device: torch.device, force: bool =
                         "method_name": "wgs", "checkpoint": str(ws.stage_dir(final) / CKPT),
                         "results": {k: results["fine"][k] for k in ("psnr", "psnr_std", "ssim", "ssim_std",
                                                                     "lpips", "lpips_std") if k in results["fine"]}})
+            # what error_vs_time.png shows: (cumulative s, probe-view PSNR) per training loop
+            res["curves"] = curve_points(ws, stage_times(ws), run.path("baseline", CURVE) if cfg.baseline else None)
             atomic_write_json(run.path("results.json"), res)
             write_report(run, stage_times(ws), results["coarse"], results["fine"], time.perf_counter() - t0,
-                         lpips_note)
+                         lpips_note, res["curves"])
             if cfg.turntable_frames > 0:
                 final_splats, _ = load_checkpoint(ws.stage_dir(final) / CKPT, scene.norm, device)
                 write_gif(run.path("turntable.gif"), [render_frame(final_splats, f, device, bg)[0].numpy()
@@ -235,6 +298,10 @@ def run_eval(ws: Workspace, cfg: EvalConfig, device: torch.device, force: bool =
     c, f = results["coarse"], results["fine"]
     log(f"eval: PSNR {fmt(c['psnr'], 2)} -> {fmt(f['psnr'], 2)} dB, SSIM {fmt(c['ssim'])} -> {fmt(f['ssim'])}, "
         f"LPIPS {fmt(c['lpips'])} -> {fmt(f['lpips'])} (coarse -> fine, {len(frames)} test views)")
+    if results.get("baseline_3dgs") is not None:
+        b = results["baseline_3dgs"]
+        log(f"eval: plain 3DGS for the same training time ({b['train_seconds']:.0f} s): PSNR {fmt(b['psnr'], 2)} dB, "
+            f"SSIM {fmt(b['ssim'])}")
     if gain is not None:
         log(f"eval: repair gain at the test poses {gain['gain_db']:+.2f} dB (render {gain['psnr_render']:.2f} -> "
             f"repaired {gain['psnr_repaired']:.2f} dB, {gain['views_improved']}/{gain['num_views']} views improved)")

@@ -1,0 +1,58 @@
+"""Quality against training time: the probe inside the training loop and the files it leaves."""
+
+from __future__ import annotations
+
+import time
+
+import torch
+from conftest import ring_w2c
+
+from wgs.config import TrainConfig
+from wgs.curves import probe_views
+from wgs.gaussians.splats import create_splats
+from wgs.gaussians.trainer import Probe, train_gaussians
+from wgs.scene.dataset import Frame
+
+
+def tiny_training(probe, iterations=5):
+    f = Frame("a.png", torch.tensor([[20.0, 0, 8], [0, 20, 8], [0, 0, 1]]),
+              torch.tensor(ring_w2c()[0], dtype=torch.float32), 16, 16, torch.rand(16, 16, 3))
+    sp = create_splats(torch.randn(40, 3) * 0.1, torch.rand(40, 3), torch.full((40,), 0.05), 0)
+    cfg = TrainConfig(iterations=iterations, refine_start=100, floater_every=0, log_every=1)
+    return train_gaussians(sp, [f], cfg, torch.device("cpu"), extent=1.0, has_masks=False, probe=probe)
+
+
+def test_probe_points_at_start_every_interval_and_end_and_its_time_is_not_training_time():
+    calls = []
+
+    def fn(splats):
+        calls.append(splats["means"].shape[0])
+        time.sleep(0.1)
+        return {"psnr": float(len(calls))}
+
+    t0 = time.perf_counter()
+    res = tiny_training(Probe(fn, every_s=0.0))  # every iteration
+    wall = time.perf_counter() - t0
+    assert [p["iteration"] for p in res.curve] == [0, 1, 2, 3, 4, 5]
+    assert [p["psnr"] for p in res.curve] == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
+    secs = [p["seconds"] for p in res.curve]
+    assert secs == sorted(secs) and secs[-1] <= res.seconds
+    assert res.probe_seconds >= 0.6 and res.seconds < wall - 0.5  # the sleeps are not training time
+
+
+def test_sparse_probe_keeps_start_and_end():
+    res = tiny_training(Probe(lambda s: {"psnr": 1.0}, every_s=1e9), iterations=4)
+    assert [p["iteration"] for p in res.curve] == [0, 4]
+
+
+def test_no_probe_no_curve():
+    res = tiny_training(None)
+    assert res.curve == [] and res.probe_seconds == 0.0
+
+
+def test_probe_views_spread_over_the_test_set():
+    names = [f"v{i}" for i in range(10)]
+    assert probe_views(names, 4) == [0, 3, 6, 9]
+    assert probe_views(names[:2], 4) == [0, 1]
+    assert probe_views(names, 0) == [] and probe_views([], 4) == []
+    assert probe_views(names, 1) == [0]

@@ -1,0 +1,54 @@
+"""Quality against training time: a probe on a fixed few test views for the training loops, and
+the `curve.json` each training stage writes (plotted by eval against cumulative wall time)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from .gaussians.trainer import Probe, TrainResult, render_frame
+from .metrics import psnr, ssim
+from .scene.dataset import PreparedScene, composite, load_frame_images
+from .workspace import Workspace, atomic_write_json, read_json
+
+CURVE = "curve.json"
+
+
+def probe_views(test_names: list[str], k: int) -> list[int]:
+    """k test views spread evenly over the list (all when there are fewer)."""
+    n = len(test_names)
+    if k <= 0 or n == 0:
+        return []
+    k = min(k, n)
+    return sorted({round(i * (n - 1) / max(k - 1, 1)) for i in range(k)})
+
+
+def test_probe(ws: Workspace, scene: PreparedScene, every_s: float, k: int, background: torch.Tensor,
+               device: torch.device) -> tuple[Probe | None, list[str]]:
+    """Mean PSNR / SSIM of the splats on k test views, and their names; (None, []) when the scene
+    has no test views, k = 0 or every_s = 0."""
+    ids = probe_views([f.name for f in scene.test], k) if every_s > 0 else []
+    if not ids:
+        return None, []
+    frames = load_frame_images(ws, [scene.test[i] for i in ids])
+    refs = [composite(f.image, f.mask, background) for f in frames]
+
+    def fn(splats) -> dict[str, float]:
+        ps, ss = [], []
+        for f, ref in zip(frames, refs, strict=True):
+            rgb, _ = render_frame(splats, f, device, background)
+            ps.append(psnr(rgb, ref))
+            ss.append(ssim(rgb, ref))
+        return {"psnr": sum(ps) / len(ps), "ssim": sum(ss) / len(ss)}
+
+    return Probe(fn, every_s), [f.name for f in frames]
+
+
+def write_curve(path: Path, res: TrainResult, views: list[str]) -> None:
+    atomic_write_json(path, {"views": views, "probe_seconds": round(res.probe_seconds, 2), "points": res.curve})
+
+
+def read_curve(path: Path) -> dict[str, Any] | None:
+    return read_json(path) if path.is_file() else None
