@@ -111,7 +111,7 @@ def test_eval_baseline_plain_3dgs_for_the_same_time(tiny, tmp_path):
     assert "Plain 3DGS for the same training time" in (ws / "6_eval/report.html").read_text()
     # the plot's curves, also in results.json: coarse, fine and the baseline on one time axis
     assert set(out["curves"]) == {"coarse", "fine", "plain 3DGS"}
-    assert out["curves"]["plain 3DGS"][0][0] == out["curves"]["coarse"][0][0]
+    assert abs(out["curves"]["plain 3DGS"][0][0] - out["curves"]["coarse"][0][0]) < 0.5  # both start with coarse
 
 
 def test_second_run_recomputes_nothing_and_fine_option_reruns_fine_and_eval(tiny, tmp_path):

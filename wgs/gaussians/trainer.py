@@ -139,7 +139,7 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
         t_start = time.perf_counter()
         with torch.no_grad():
             metrics = probe.fn({k: v.detach() for k, v in params.items()})
-        curve.append({"seconds": round(t_start - t0, 3), "iteration": it, **metrics})
+        curve.append({"seconds": t_start - t0, "iteration": it, **metrics})
         took = time.perf_counter() - t_start
         t0 += took
         probe_s += took

@@ -105,7 +105,8 @@ def fmt(v: float | None, nd: int = 3) -> str:
 
 
 def write_report(run: StageRun, times: list[dict[str, Any]], coarse: dict, fine: dict, eval_s: float,
-                 lpips_note: str | None, curves: dict[str, list[tuple[float, float]]] | None = None) -> None:
+                 lpips_note: str | None, curves: dict[str, list[tuple[float, float]]] | None = None,
+                 baseline: dict | None = None) -> None:
     total = (times[-1]["cumulative_s"] if times else 0.0) + eval_s
     lines = ["# wgs report: error against run time", "",
              "| stage | wall time (s) | cumulative (s) | peak memory (MiB) | PSNR | SSIM | LPIPS |",
@@ -121,7 +122,7 @@ def write_report(run: StageRun, times: list[dict[str, Any]], coarse: dict, fine:
     if lpips_note:
         lines += [f"LPIPS not computed: {lpips_note}", ""]
     atomic_write_bytes(run.path("report.md"), "\n".join(lines).encode())
-    plot_error_vs_time(run.path("error_vs_time.png"), times, coarse, fine, curves)
+    plot_error_vs_time(run.path("error_vs_time.png"), times, coarse, fine, curves, baseline)
 
 
 def curve_points(ws: Workspace, times: list[dict[str, Any]], baseline: Path | None = None
@@ -141,7 +142,8 @@ def curve_points(ws: Workspace, times: list[dict[str, Any]], baseline: Path | No
     return out
 
 
-def plot_error_vs_time(path, times, coarse, fine, curves: dict[str, list[tuple[float, float]]] | None = None) -> None:
+def plot_error_vs_time(path, times, coarse, fine, curves: dict[str, list[tuple[float, float]]] | None = None,
+                       baseline: dict | None = None) -> None:
     """Test PSNR against cumulative wall time: the training curves (on a few probe views) with stage
     boundaries, and the final evaluation of G_c and G_f (all test views) as points."""
     import matplotlib
@@ -151,6 +153,8 @@ def plot_error_vs_time(path, times, coarse, fine, curves: dict[str, list[tuple[f
 
     cum = {r["stage"]: r["cumulative_s"] for r in times}
     pts = [(cum[s], q["psnr"], s) for s, q in (("coarse", coarse), ("fine", fine)) if s in cum and q["psnr"]]
+    if baseline is not None and baseline.get("psnr") and "fine" in cum:
+        pts.append((cum["fine"], baseline["psnr"], "plain 3DGS"))
     fig, ax = plt.subplots(figsize=(6, 3.6))
     for stage, xy in (curves or {}).items():
         ax.plot([p[0] for p in xy], [p[1] for p in xy], ".-", lw=1, label=f"{stage} training (probe views)")
@@ -287,7 +291,7 @@ def run_eval(ws: Workspace, cfg: EvalConfig, device: torch.device, force: bool =
             res["curves"] = curve_points(ws, stage_times(ws), run.path("baseline", CURVE) if cfg.baseline else None)
             atomic_write_json(run.path("results.json"), res)
             write_report(run, stage_times(ws), results["coarse"], results["fine"], time.perf_counter() - t0,
-                         lpips_note, res["curves"])
+                         lpips_note, res["curves"], results.get("baseline_3dgs"))
             if cfg.turntable_frames > 0:
                 final_splats, _ = load_checkpoint(ws.stage_dir(final) / CKPT, scene.norm, device)
                 write_gif(run.path("turntable.gif"), [render_frame(final_splats, f, device, bg)[0].numpy()
