@@ -261,6 +261,8 @@ def run_eval(ws: Workspace, cfg: EvalConfig, device: torch.device, force: bool =
                 splats, _ = load_checkpoint(ws.stage_dir(st) / CKPT, scene.norm, device)
                 out = run.path("renders", "x").parent if key == "fine" else None
                 per = evaluate_model(splats, frames, device, bg, lpips_fn, out, desc=f"eval {st}")
+                if key == "fine":
+                    final_splats = splats  # the turntable renders it again, without a second load
                 atomic_write_json(run.path("per_view.json" if key == "fine" else "per_view_coarse.json"), per)
                 pers[key] = per
                 results[key] = {**summarise(per), "num_gaussians": int(splats["means"].shape[0]),
@@ -293,7 +295,6 @@ def run_eval(ws: Workspace, cfg: EvalConfig, device: torch.device, force: bool =
             write_report(run, stage_times(ws), results["coarse"], results["fine"], time.perf_counter() - t0,
                          lpips_note, res["curves"], results.get("baseline_3dgs"))
             if cfg.turntable_frames > 0:
-                final_splats, _ = load_checkpoint(ws.stage_dir(final) / CKPT, scene.norm, device)
                 write_gif(run.path("turntable.gif"), [render_frame(final_splats, f, device, bg)[0].numpy()
                                                       for f in orbit_frames(scene.train, cfg.turntable_frames)])
             write_html(run, ws, frames, bg, pers, results, time.perf_counter() - t0, lpips_note, gain)
