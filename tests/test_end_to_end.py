@@ -167,3 +167,88 @@ def test_many_views_leave_out_repair(tmp_path, tiny):
     r = json.loads((ws.root / "6_eval/results.json").read_text())
     assert r["final_model"] == "coarse"
     assert "--force-repair" in " ".join(res.output.split())
+
+
+def chromium() -> str | None:
+    return shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
+
+
+def screenshots(urls: list[str], tmp_path) -> list:
+    """Headless Chromium (driven by Playwright, WebGL on SwiftShader: no GPU) pictures [H, W, 3] of
+    each page once it says it is ready (the viewer sets body[data-ready]) and has drawn."""
+    import time
+
+    sync_playwright = pytest.importorskip("playwright.sync_api").sync_playwright
+    from wgs.scene.images import read_image
+
+    if chromium() is None:
+        pytest.skip("Chromium is not installed (apt install chromium): no screenshots")
+    out = []
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=chromium(), args=[
+            "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+            "--disable-background-networking", "--disable-component-update", "--disable-sync"])
+        try:
+            page = browser.new_page(viewport={"width": 640, "height": 480})
+            errors = []
+            page.on("pageerror", lambda e: errors.append(e))
+            for i, url in enumerate(urls):
+                page.goto(url)
+                page.wait_for_function("document.readyState === 'complete' && (!document.getElementById('canvas')"
+                                       " || document.body.dataset.ready)", timeout=60000)
+                time.sleep(2)  # a few animation frames: the depth sort runs in a worker
+                path = tmp_path / f"shot{i}.png"
+                page.screenshot(path=str(path))
+                out.append(read_image(path)[..., :3])
+            assert not errors, errors
+        finally:
+            browser.close()
+    return out
+
+
+def test_viewer_serves_the_model_and_the_report(tiny, tmp_path):
+    from urllib.error import HTTPError
+    from urllib.request import urlopen
+
+    from wgs.viewer import serving, site
+
+    _, _, ws, _ = tiny
+    files = site(ws, None)
+    with serving(files) as url:
+        assert url.startswith("http://127.0.0.1:")
+        page = urlopen(url).read().decode()
+        assert 'from "./gsplat.es.js"' in page
+        with urlopen(url + "gsplat.es.js") as r:
+            assert "javascript" in r.headers["Content-Type"] and b"PLYLoader" in r.read()
+        view = json.loads(urlopen(url + "view.json").read())
+        assert view["stage"] == "fine" and view["report"] is True and view["radius"] > 0
+        assert len(urlopen(url + "model.splat").read()) == 32 * view["gaussians"]
+        assert b"Per view" in urlopen(url + "report.html").read()
+        assert b"MIT License" in urlopen(url + "LICENSE.gsplat").read()
+        with pytest.raises(HTTPError):
+            urlopen(url + "../scene/scene.json")
+        viewer, report = screenshots([url, url + "report.html"], tmp_path)
+        centre = viewer[120:360, 160:480]  # below the title bar: only the canvas
+        assert (centre.mean(-1) < 0.9).mean() > 0.05, "the viewer's canvas is blank"
+        assert report.std() > 0.05 and (report.mean(-1) < 0.5).mean() > 0.005, "the report is blank"
+
+
+def test_export_ply_and_splat(tiny, tmp_path):
+    _, cfg, ws, _ = tiny
+    for fmt in ("ply", "splat"):
+        out = tmp_path / f"model.{fmt}"
+        res = CliRunner().invoke(cli, ["-w", str(ws.root), "export", "--format", fmt, "-o", str(out)],
+                                 catch_exceptions=False)
+        assert res.exit_code == 0, res.output
+        data = out.read_bytes()
+        if fmt == "ply":
+            header = data[: data.index(b"end_header")].decode()
+            assert header.count("f_rest_") == 45
+        else:
+            assert len(data) % 32 == 0 and len(data) > 0
+
+
+def test_fine_records_whether_its_lpips_term_ran(tiny):
+    _, _, ws, _ = tiny
+    term = ws.manifest("fine")["lpips_term"]
+    assert term["used"] is False and "not found" in term["why"]

@@ -104,3 +104,21 @@ def test_lpips_vgg_loads_and_missing_weights_are_explained(tmp_path, monkeypatch
     m = LPIPS("vgg", weights_dir=tmp_path)
     x = torch.rand(1, 3, 32, 32)
     assert float(m(x, x)) == 0.0 and float(m(x, 1 - x)) > 0
+
+
+def test_lpips_linear_layers_from_an_installed_lpips_package(tmp_path, monkeypatch):
+    """The backbone from the torch hub folder, the linear layers from `lpips/weights/v0.1/`."""
+    from wgs.lpips import LIN_FILES
+
+    hub = tmp_path / "torch" / "hub" / "checkpoints"
+    hub.mkdir(parents=True)
+    write_random_lpips(hub)
+    pkg = tmp_path / "site" / "lpips"
+    (pkg / "weights" / "v0.1").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("raise ImportError('wgs must not import lpips')\n")
+    (hub / LIN_FILES["alex"]).rename(pkg / "weights" / "v0.1" / LIN_FILES["alex"])
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
+    monkeypatch.delenv("WGS_LPIPS_WEIGHTS", raising=False)
+    monkeypatch.syspath_prepend(str(tmp_path / "site"))
+    m = LPIPS("alex")
+    assert m.sources["linear"] == str(pkg / "weights" / "v0.1" / "alex.pth")

@@ -1,4 +1,4 @@
-"""Benchmarks (not tests): `python -m wgs.bench rasterizer|knn|pipeline|batch|contention` (see --help).
+"""Benchmarks (not tests): `python -m wgs.bench rasterizer|knn|pipeline|batch|contention|sfm` (see --help).
 
 The rasterizer benchmark times our numba fast path and the pure-torch reference in the same run
 on random scenes with realistic footprints (a few px to tens of px), forward and forward+backward,
@@ -223,9 +223,43 @@ def bench_knn(sizes: tuple[int, ...] = (100_000, 1_000_000), reference_up_to: in
     return {"benchmark": "knn", "rows": rows, "threads": torch.get_num_threads()}
 
 
+def bench_sfm(scene: str, root: str, matcher: str = "auto", max_image_size: int = 1600) -> dict:
+    """Pose a scene that ships its own poses again from its photos alone (structure-from-motion,
+    `wgs prepare`'s path) and compare after a similarity alignment: rotation error (degrees) and
+    camera-centre error (share of the scene's camera extent), photos registered, time."""
+    import numpy as np
+
+    from .scene.colmap import read_colmap_scene
+    from .scene.formats import read_scene
+    from .scene.pose_error import pose_errors
+    from .scene.sfm import pose_photos
+    from .threads import thread_count
+
+    ref = read_scene(scene)
+    photos = sorted(ref.views, key=lambda v: v.name)
+    folder = Path(root) / "sfm_photos"
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+    for v in photos:  # the photos alone, flat, under their own names
+        shutil.copy2(v.image, folder / v.image.name)
+    out = Path(root) / "sfm_model"
+    res = pose_photos(folder, [v.image.name for v in photos], None, out, matcher, max_image_size, thread_count())
+
+    posed = {v.name: v for v in read_colmap_scene(folder, out, folder, fmt="photos").views}
+    both = [v for v in photos if v.image.name in posed]
+    err = pose_errors(np.stack([posed[v.image.name].w2c for v in both]), np.stack([v.w2c for v in both]))
+    rot, cen = err["rotation_deg"], err["center"] * 100
+    return {"benchmark": "sfm", "scene": scene, "photos": len(photos), "registered": res.registered,
+            "registered_share": round(res.registered / len(photos), 3), "matcher": res.matcher,
+            "seconds": round(res.seconds, 1), "threads": thread_count(),
+            "rotation_deg": {"median": round(float(np.median(rot)), 3), "max": round(float(rot.max()), 3)},
+            "center_pct_extent": {"median": round(float(np.median(cen)), 3), "max": round(float(cen.max()), 3)},
+            "machine": {"platform": platform.platform(), "cpus": os.cpu_count()}}
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(prog="python -m wgs.bench")
-    ap.add_argument("which", choices=["rasterizer", "pipeline", "batch", "contention", "knn"])
+    ap.add_argument("which", choices=["rasterizer", "pipeline", "batch", "contention", "knn", "sfm"])
     ap.add_argument("--json", action="store_true", help="print JSON instead of a table")
     ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--ref-repeats", type=int, default=3)
@@ -237,7 +271,15 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--prepared", help="contention: a workspace after `wgs prepare`")
     ap.add_argument("--iterations", type=int, default=300, help="contention: coarse iterations per run")
     ap.add_argument("--variants", default=",".join(CONTENTION_VARIANTS), help="contention: thread settings")
+    ap.add_argument("--matcher", default="auto", help="sfm: auto, exhaustive or sequential")
     a = ap.parse_args(argv)
+    if a.which == "sfm":
+        if not Path(a.scene).is_dir():
+            print(f"scene {a.scene} not found: skipped")
+            return
+        json.dump(bench_sfm(a.scene, a.root, a.matcher), sys.stdout, indent=2)
+        print()
+        return
     if a.which == "knn":
         json.dump(bench_knn(), sys.stdout, indent=2)
         print()

@@ -25,7 +25,7 @@ from .workspace import STAGE_DIRS, Workspace
 HELP = """WaveletGaussian: sparse-view 3D Gaussian object reconstruction.
 
 \b
-  prepare    import posed photos (+ masks) into a workspace
+  prepare    import posed photos (+ masks), or pose photos by structure-from-motion
   coarse     train a coarse 3DGS on the sparse views; Haar-DWT its renders
   mask-data  online random masking -> corrupted/clean LL training pairs
   finetune   train the LL diffusion repair model D and the HF U-Net U
@@ -38,6 +38,7 @@ Quick start:
   wgs -w my_ws all path/to/scene     # every stage, then the report
   wgs -w my_ws info                  # what the workspace holds
   wgs -w my_ws render --views path   # an orbit of the final model
+  wgs -w my_ws view                  # the model in the browser (WebGL, localhost)
 """
 
 
@@ -134,13 +135,17 @@ def stage_common(f):
 @click.option("--views", type=int, default=None, help="Number of training views (farthest-point or sparse_N.txt).")
 @click.option("--downscale", type=int, default=None, help="Integer downscale factor (uses images_K/ if present).")
 @click.option("--max-pixels", type=int, default=None, help="Refuse images larger than this many pixels.")
+@click.option("--matcher", type=click.Choice(["auto", "exhaustive", "sequential"]), default=None,
+              help="Photos without poses: feature matching for structure-from-motion "
+                   "(auto: exhaustive up to 150 photos, else sequential by name).")
 @stage_common
 @click.pass_obj
-def prepare(obj: Ctx, scene: Path, views, downscale, max_pixels, force, preset) -> None:
-    """Import SCENE (COLMAP, Blender, instant-ngp/nerfstudio or IDR) into the workspace."""
+def prepare(obj: Ctx, scene: Path, views, downscale, max_pixels, matcher, force, preset) -> None:
+    """Import SCENE (COLMAP, Blender, instant-ngp/nerfstudio, IDR, LLFF, or photos without poses,
+    which structure-from-motion poses) into the workspace."""
     from .stages.s0_prepare import run_prepare
 
-    cfg = obj.config("prepare", preset, views=views, downscale=downscale, max_pixels=max_pixels)
+    cfg = obj.config("prepare", preset, views=views, downscale=downscale, max_pixels=max_pixels, matcher=matcher)
     if cfg.views is not None and cfg.views < 2:
         raise WgsError(f"--views must be at least 2, got {cfg.views}")
     if cfg.downscale < 1:

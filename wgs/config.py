@@ -27,6 +27,9 @@ class PrepareConfig:
     downscale: int = 1
     max_pixels: int = 4096 * 4096  # refuse larger images unless raised
     test_every: int = 8  # without a test split: every k-th non-training view
+    # photos without poses: structure-from-motion (pycolmap)
+    matcher: str = "auto"  # auto (exhaustive up to 150 photos, else sequential), exhaustive, sequential
+    sfm_max_image_size: int = 1600  # SIFT on photos downscaled to this longest side
 
 
 @dataclass
@@ -143,7 +146,14 @@ class RepairConfig:
 
 
 @dataclass
-class FineConfig(CurveConfig, TrainConfig):
+class LpipsWeightsConfig:
+    """Where LPIPS weights are looked for, the same for the fine stage's LPIPS term and eval."""
+
+    lpips_weights: str | None = None  # folder; also $WGS_LPIPS_WEIGHTS, $TORCH_HOME/hub/checkpoints, lpips package
+
+
+@dataclass
+class FineConfig(LpipsWeightsConfig, CurveConfig, TrainConfig):
     """Refinement of G_c on the real and the pseudo references."""
 
     iterations: int = 1500
@@ -160,9 +170,8 @@ class FineConfig(CurveConfig, TrainConfig):
 
 
 @dataclass
-class EvalConfig:
+class EvalConfig(LpipsWeightsConfig):
     lpips_net: str = "alex"  # alex | vgg
-    lpips_weights: str | None = None  # folder; also $WGS_LPIPS_WEIGHTS, $TORCH_HOME/hub/checkpoints
     max_views: int | None = None  # evaluate on the first k test views only
     repair_gain: bool = True  # also repair G_c's renders at the test poses and score them (the repair's own gain)
     turntable_frames: int = 48  # a GIF of the final model on an orbit fitted to the training cameras; 0: none

@@ -3,7 +3,8 @@
 Backbones are torchvision-format checkpoints (`alexnet-owt-7be5be79.pth`, `vgg16-397923af.pth`),
 the linear layers are the LPIPS package's v0.1 files (`alex.pth`, `vgg.pth`). They are looked up
 in, in order: an explicit folder, `$WGS_LPIPS_WEIGHTS`, `$TORCH_HOME/hub/checkpoints`
-(default `~/.cache/torch/hub/checkpoints`). Nothing is ever downloaded.
+(default `~/.cache/torch/hub/checkpoints`), and for the linear layers an installed `lpips`
+package's own `weights/v0.1/`. Nothing is ever downloaded.
 """
 
 from __future__ import annotations
@@ -53,7 +54,22 @@ def search_dirs(explicit: str | Path | None = None) -> list[Path]:
         dirs.append(Path(os.environ["WGS_LPIPS_WEIGHTS"]))
     torch_home = Path(os.environ.get("TORCH_HOME", Path.home() / ".cache" / "torch"))
     dirs.append(torch_home / "hub" / "checkpoints")
+    dirs += lpips_package_dirs()
     return dirs
+
+
+def lpips_package_dirs() -> list[Path]:
+    """The linear layers inside an installed `lpips` package (`lpips/weights/v0.1/alex.pth`), found
+    without importing it (its import pulls in torchvision)."""
+    import importlib.util
+
+    try:
+        spec = importlib.util.find_spec("lpips")
+    except (ImportError, ValueError):
+        return []
+    if spec is None or not spec.submodule_search_locations:
+        return []
+    return [Path(loc) / "weights" / "v0.1" for loc in spec.submodule_search_locations]
 
 
 def _find(name: str, dirs: list[Path]) -> Path | None:

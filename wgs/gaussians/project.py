@@ -39,6 +39,33 @@ def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
     ], dim=-1).reshape(*quats.shape[:-1], 3, 3)
 
 
+def matrix_to_quat(R: torch.Tensor) -> torch.Tensor:
+    """A rotation [3, 3] -> unit quaternion wxyz [4] (Shepperd's method, stable at every angle)."""
+    m = R.double()
+    t = m.trace()
+    cands = torch.stack([1 + t, 1 + 2 * m[0, 0] - t, 1 + 2 * m[1, 1] - t, 1 + 2 * m[2, 2] - t])
+    i = int(cands.argmax())
+    r = cands[i].clamp_min(1e-12).sqrt()
+    if i == 0:
+        q = [r, (m[2, 1] - m[1, 2]) / r, (m[0, 2] - m[2, 0]) / r, (m[1, 0] - m[0, 1]) / r]
+    elif i == 1:
+        q = [(m[2, 1] - m[1, 2]) / r, r, (m[0, 1] + m[1, 0]) / r, (m[0, 2] + m[2, 0]) / r]
+    elif i == 2:
+        q = [(m[0, 2] - m[2, 0]) / r, (m[0, 1] + m[1, 0]) / r, r, (m[1, 2] + m[2, 1]) / r]
+    else:
+        q = [(m[1, 0] - m[0, 1]) / r, (m[0, 2] + m[2, 0]) / r, (m[1, 2] + m[2, 1]) / r, r]
+    q = torch.stack(q) / 2
+    return q * torch.sign(q[0]) if q[0] != 0 else q
+
+
+def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Hamilton product of wxyz quaternions [..., 4] (rotation a after b)."""
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                        aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], -1)
+
+
 def covariance3d(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
     """Σ = R S Sᵀ Rᵀ: [N, 4], [N, 3] -> [N, 3, 3]."""
     M = quat_to_rotmat(quats) * scales[..., None, :]

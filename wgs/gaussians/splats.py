@@ -147,6 +147,40 @@ def export_ply(path: Path, splats: Splats, pad_to_degree: int | None = None) -> 
     return len(data)
 
 
+SPLAT_ROW = 32  # bytes per Gaussian in antimatter15's .splat layout
+
+
+def splat_bytes(splats: Splats, rotation: torch.Tensor | None = None, translation: torch.Tensor | None = None
+                ) -> bytes:
+    """antimatter15's `.splat` layout (WebGL viewers read it): per Gaussian, position float32 x3,
+    scale float32 x3 (activated), colour RGBA uint8 (SH degree 0, opacity), rotation uint8 x4
+    (w, x, y, z) * 128 + 128; largest and most opaque first. No view-dependent colour.
+    `rotation` [3, 3] and `translation` [3] move the model first (x -> R x + t).
+    """
+    from .project import matrix_to_quat, quat_multiply
+    from .sh import C0
+
+    sp = {k: v.detach().cpu().double() for k, v in splats.items()}
+    means, quats = sp["means"], torch.nn.functional.normalize(sp["quats"], dim=-1)
+    if rotation is not None:
+        R = rotation.double()
+        means = means @ R.T
+        quats = quat_multiply(matrix_to_quat(R)[None], quats)
+    if translation is not None:
+        means = means + translation.double()
+    scales = sp["scales"].exp()
+    alpha = torch.sigmoid(sp["opacities"])
+    rgb = (0.5 + C0 * sp["sh0"][:, 0, :]).clamp(0, 1)
+    ok = torch.isfinite(torch.cat([means, scales, quats, rgb, alpha[:, None]], 1)).all(1)
+    order = torch.argsort(-(scales.prod(1) * alpha)[ok])
+    means, scales, quats, rgb, alpha = (t[ok][order] for t in (means, scales, quats, rgb, alpha))
+    out = np.zeros(len(means), dtype=[("pos", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4), ("rot", "u1", 4)])
+    out["pos"], out["scale"] = means.numpy(), scales.numpy()
+    out["rgba"] = (torch.cat([rgb, alpha[:, None]], 1) * 255).round().clamp(0, 255).numpy()
+    out["rot"] = (quats * 128 + 128).round().clamp(0, 255).numpy()
+    return out.tobytes()
+
+
 def import_ply(path: Path) -> Splats:
     """Read a 3DGS PLY (binary little endian, float32 properties) into raw splats."""
     path = Path(path)

@@ -38,13 +38,15 @@ def camera_K(cam: pycolmap.Camera) -> np.ndarray:
     return np.asarray(cam.calibration_matrix(), dtype=np.float64)
 
 
-def read_colmap_scene(root: Path) -> RawScene:
-    """A COLMAP scene folder: sparse model + images/ (+ masks/)."""
-    model_dir = find_model_dir(root)
+def read_colmap_scene(root: Path, model_dir: Path | None = None, image_dir: Path | None = None,
+                      fmt: str = "colmap") -> RawScene:
+    """A COLMAP scene folder: sparse model + images/ (+ masks/). `model_dir` and `image_dir` name
+    them elsewhere (photos posed by `wgs prepare`: the model in the workspace)."""
+    model_dir = model_dir or find_model_dir(root)
     if model_dir is None:
         raise InputError("no COLMAP model (sparse/0 or sparse/ with cameras.bin|txt)", root)
     rec = read_reconstruction(model_dir)
-    image_dir = root / "images"
+    image_dir = image_dir or root / "images"
     if not image_dir.is_dir():
         raise InputError("COLMAP scene has no images/ folder", root)
     mask_dir = root / "masks" if (root / "masks").is_dir() else None
@@ -72,7 +74,7 @@ def read_colmap_scene(root: Path) -> RawScene:
             mask = find_with_stem(mask_dir, name)  # masks named like "a.png.png"
         views.append(View(name, path, camera_K(cam), w2c, int(cam.width), int(cam.height), mask, dist))
     files = sorted(model_dir.iterdir())
-    return RawScene(root, "colmap", views, notes=notes, metadata_files=files)
+    return RawScene(root, fmt, views, notes=notes, metadata_files=files)
 
 
 def undistort(img: np.ndarray, dist: Distortion, K: np.ndarray, width: int, height: int,

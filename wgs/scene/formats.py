@@ -9,6 +9,8 @@ import numpy as np
 from ..errors import InputError
 from .colmap import find_model_dir, read_colmap_scene
 from .idr import read_idr_scene
+from .llff import read_llff_scene
+from .sfm import find_photos
 from .transforms import read_blender_scene, read_ngp_scene
 from .types import RawScene
 
@@ -17,6 +19,8 @@ FORMATS = {
     "ngp": "transforms.json (instant-ngp / nerfstudio)",
     "colmap": "sparse/0/ or sparse/ with cameras.bin|txt, and images/",
     "idr": "cameras_sphere.npz with image/ (or images/) and mask/",
+    "llff": "poses_bounds.npy with images/ (or images_K/), optional masks/",
+    "photos": "photos without poses in images/ (or the folder itself), optional masks/: posed by pycolmap",
 }
 
 
@@ -29,22 +33,34 @@ def detect_format(root: Path) -> str:
         return "colmap"
     if (root / "cameras_sphere.npz").is_file():
         return "idr"
+    if (root / "poses_bounds.npy").is_file():
+        return "llff"
+    if find_photos(root) is not None:
+        return "photos"
     found = sorted(p.name + ("/" if p.is_dir() else "") for p in root.iterdir())[:20]
     expected = "; ".join(f"{k}: {v}" for k, v in FORMATS.items())
     raise InputError(f"no known scene format. Found: {', '.join(found) or '(empty folder)'}. Expected one of "
                      f"{expected}", root)
 
 
-def read_scene(root: str | Path) -> RawScene:
+def read_scene(root: str | Path, sfm_model: Path | None = None) -> RawScene:
+    """The scene in folder `root`. Photos without poses need `sfm_model`, the COLMAP model that
+    structure-from-motion made of them (`sfm.pose_photos`)."""
     root = Path(root)
     if not root.exists():
         raise InputError("scene folder not found", root)
     if not root.is_dir():
         raise InputError("not a folder", root)
     fmt = detect_format(root)
-    reader = {"blender": read_blender_scene, "ngp": read_ngp_scene, "colmap": read_colmap_scene,
-              "idr": read_idr_scene}[fmt]
-    scene = reader(root)
+    if fmt == "photos":
+        if sfm_model is None:
+            raise InputError("photos without poses: `wgs prepare` poses them (structure-from-motion)", root)
+        image_dir, _, _ = find_photos(root)
+        scene = read_colmap_scene(root, sfm_model, image_dir, fmt="photos")
+    else:
+        reader = {"blender": read_blender_scene, "ngp": read_ngp_scene, "colmap": read_colmap_scene,
+                  "idr": read_idr_scene, "llff": read_llff_scene}[fmt]
+        scene = reader(root)
     if not scene.views:
         raise InputError(f"{fmt} scene has no usable images", root)
     check_cameras(scene)

@@ -39,8 +39,8 @@ def scene_inputs_digest(scene: RawScene) -> str:
     return h.hexdigest()[:16]
 
 
-def load_scene_for_prepare(root: str | Path, cfg: PrepareConfig) -> RawScene:
-    scene = read_scene(root)
+def load_scene_for_prepare(root: str | Path, cfg: PrepareConfig, sfm_model: Path | None = None) -> RawScene:
+    scene = read_scene(root, sfm_model)
     for v in scene.views:
         _check_camera(v, scene)
     choose_split(scene, cfg.views, cfg.test_every)

@@ -56,12 +56,14 @@ def choose_split(scene: RawScene, views: int | None, test_every: int) -> None:
     root = scene.root
     split_train = root / f"sparse_{views}.txt" if views else None
     split_test = root / "sparse_test.txt"
+    listed_test = set(sorted_ids[i] for i in read_split_file(split_test, n_all)) if split_test.is_file() else set()
     if split_train is not None and split_train.is_file():
         scene.train = [sorted_ids[i] for i in read_split_file(split_train, n_all)]
         scene.notes.append(f"training views from {split_train.name}")
         scene.metadata_files.append(split_train)
     else:
         pool = scene.train if scene.train else [i for i in range(n_all) if i not in scene.test]
+        pool = [i for i in pool if i not in listed_test]  # the listed test views are never trained on
         if views is not None and views < len(pool):
             centers = np.stack([scene.views[i].center for i in pool])
             fwd = np.stack([scene.views[i].forward for i in pool])

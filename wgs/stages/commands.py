@@ -92,14 +92,16 @@ def register(cli, stage_common, workspace_option) -> None:
     @click.option("--iterations", type=int, default=None, help="Training iterations (per round).")
     @click.option("--rounds", type=int, default=None,
                   help="Rounds of repair + refinement: each later one repairs the refined model's renders again.")
+    @click.option("--lpips-weights", type=click.Path(path_type=str), default=None,
+                  help="Folder with LPIPS weights for the pseudo views' LPIPS term (see eval).")
     @stage_common
     @click.pass_obj
-    def fine(obj, iterations, rounds, force, preset):
+    def fine(obj, iterations, rounds, lpips_weights, force, preset):
         """Refine G_c into G_f on the real and the pseudo references."""
         from .s5_fine import run_fine
 
-        run_fine(obj.ws(), obj.config("fine", preset, iterations=iterations, rounds=rounds), obj.torch_device(),
-                 obj.seed, force=force)
+        cfg = obj.config("fine", preset, iterations=iterations, rounds=rounds, lpips_weights=lpips_weights)
+        run_fine(obj.ws(), cfg, obj.torch_device(), obj.seed, force=force)
 
     @cli.command("eval")
     @click.option("--lpips-net", type=click.Choice(["alex", "vgg"]), default=None, help="LPIPS backbone.")
@@ -132,9 +134,14 @@ def register(cli, stage_common, workspace_option) -> None:
     @click.option("--force-repair", is_flag=True, help="Run the repair stages even with many training views.")
     @click.option("--baseline", is_flag=True, default=None,
                   help="Also train plain 3DGS for the same training time and plot its curve (eval).")
+    @click.option("--lpips-weights", type=click.Path(path_type=str), default=None,
+                  help="Folder with LPIPS weights (fine's LPIPS term and eval).")
+    @click.option("--matcher", type=click.Choice(["auto", "exhaustive", "sequential"]), default=None,
+                  help="Photos without poses: feature matching for structure-from-motion.")
     @stage_common
     @click.pass_obj
-    def all_(obj, scene, views, downscale, strategy, domain, no_u, prior, force_repair, baseline, force, preset):
+    def all_(obj, scene, views, downscale, strategy, domain, no_u, prior, force_repair, baseline, lpips_weights,
+             matcher, force, preset):
         """Run every stage on SCENE (each skipped when up to date) and print the summary."""
         from ..pipeline import print_summary, run_all
 
@@ -144,9 +151,11 @@ def register(cli, stage_common, workspace_option) -> None:
                 raise WgsError("no workspace name for the root folder: pass -w/--workspace DIR")
             obj.workspace = scene.with_name(scene.name + "_wgs")
             log(f"workspace: {obj.workspace}")
-        overrides = {"prepare": {"views": views, "downscale": downscale}, "mask_data": {"strategy": strategy},
+        overrides = {"prepare": {"views": views, "downscale": downscale, "matcher": matcher},
+                     "mask_data": {"strategy": strategy},
                      "finetune": {"domain": domain, "use_u": False if no_u else None, "prior": prior},
-                     "eval": {"baseline": baseline}}
+                     "fine": {"lpips_weights": lpips_weights},
+                     "eval": {"baseline": baseline, "lpips_weights": lpips_weights}}
         outcomes = run_all(obj, scene, preset, force, force_repair, overrides)
         print_summary(obj.ws(), outcomes)
 
@@ -256,3 +265,60 @@ def register(cli, stage_common, workspace_option) -> None:
         if stage is None:
             stage = "fine" if ws.manifest("fine") is not None else "coarse"
         run_render(ws, stage, views, frames, obj.torch_device(), video)
+
+    @cli.command()
+    @click.option("--stage", "stage", type=click.Choice(["coarse", "fine"]), default=None,
+                  help="Which model (default: the newest, fine when it exists).")
+    @click.option("--port", type=click.IntRange(0, 65535), default=8765, help="Port on 127.0.0.1 (0: any free one).")
+    @click.option("--no-browser", is_flag=True, help="Print the address only; do not open a browser.")
+    @workspace_option
+    @click.pass_obj
+    def view(obj, stage, port, no_browser):
+        """Look at the model in the browser: a WebGL splat viewer on 127.0.0.1 (Ctrl-C stops it)."""
+        import time
+        import webbrowser
+
+        from ..progress import results
+        from ..viewer import serving, site
+
+        ws = obj.ws()
+        if not ws.root.is_dir():
+            raise WgsError("workspace folder not found", ws.root)
+        files = site(ws, stage)
+        with serving(files, port) as url:
+            results.print(f"viewer: {url}  (report: {url}report.html)" if "/report.html" in files else f"viewer: {url}")
+            results.print("Ctrl-C stops it")
+            if not no_browser:
+                webbrowser.open(url)
+            while True:
+                time.sleep(3600)
+
+    @cli.command()
+    @click.option("--stage", "stage", type=click.Choice(["coarse", "fine"]), default=None,
+                  help="Which model (default: the newest, fine when it exists).")
+    @click.option("--format", "fmt", type=click.Choice(["ply", "splat"]), default="ply",
+                  help="ply: INRIA 3DGS layout, SH degree 3 (SIBR and most viewers); splat: antimatter15's "
+                       "compact layout for WebGL viewers (no view-dependent colour).")
+    @click.option("-o", "--output", type=click.Path(path_type=Path), default=None,
+                  help="Output file (default: WS/export/STAGE.FORMAT).")
+    @workspace_option
+    @click.pass_obj
+    def export(obj, stage, fmt, output):
+        """Write the model for other viewers and tools (world coordinates of the input scene)."""
+        from ..gaussians.splats import VIEWER_SH_DEGREE, export_ply, load_checkpoint, splat_bytes
+        from ..progress import results
+        from ..viewer import model_path
+        from ..workspace import atomic_write_bytes
+
+        ws = obj.ws()
+        stage, ckpt = model_path(ws, stage)
+        splats, _ = load_checkpoint(ckpt)  # world coordinates
+        out = output or ws.root / "export" / f"{stage}.{fmt}"
+        out.parent.mkdir(parents=True, exist_ok=True)
+        if fmt == "ply":
+            n = export_ply(out, splats, pad_to_degree=VIEWER_SH_DEGREE)
+        else:
+            data = splat_bytes(splats)
+            atomic_write_bytes(out, data)
+            n = len(data) // 32
+        results.print(f"export: {n} Gaussians of the {stage} model -> {out}")

@@ -1,19 +1,64 @@
-"""Stage 0: import a scene into `WS/scene/`."""
+"""Stage 0: import a scene into `WS/scene/`; photos without poses are first posed into `WS/sfm/`."""
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 
 from ..config import PrepareConfig, as_dict
 from ..errors import InputError
 from ..progress import log
+from ..scene.formats import detect_format
 from ..scene.prepare import load_scene_for_prepare, prepare, scene_inputs_digest
-from ..workspace import Workspace
+from ..scene.sfm import MATCHERS, find_photos, pose_photos
+from ..threads import thread_count
+from ..workspace import Workspace, atomic_write_bytes, atomic_write_json, read_json
+
+SFM_DIR = "sfm"
+SFM_INPUTS = "inputs.sha256"
+SFM_SUMMARY = "summary.json"
+
+
+def _photos_digest(scene_dir: Path, cfg: PrepareConfig) -> str:
+    image_dir, names, mask_dir = find_photos(scene_dir)
+    h = hashlib.sha256(f"sfm-1:{cfg.matcher}:{cfg.sfm_max_image_size}".encode())
+    for folder in (image_dir, mask_dir):
+        for p in sorted(folder.iterdir()) if folder is not None else ():
+            if p.is_file() and (folder != image_dir or p.name in names):
+                st = p.stat()
+                h.update(f"{p.name}:{st.st_size}:{st.st_mtime_ns}".encode())
+    return h.hexdigest()
+
+
+def posed_photos(ws: Workspace, scene_dir: Path, cfg: PrepareConfig) -> Path:
+    """The COLMAP model of the photos in `scene_dir`, made once by structure-from-motion and kept
+    in `WS/sfm/` until the photos or the settings change."""
+    if cfg.matcher not in MATCHERS:
+        raise InputError(f"unknown matcher {cfg.matcher!r}: use {', '.join(MATCHERS)}")
+    out = ws.root / SFM_DIR
+    key = _photos_digest(scene_dir, cfg)
+    if (out / SFM_INPUTS).is_file() and (out / SFM_INPUTS).read_text().strip() == key:
+        log("sfm: photos already posed, reused")
+        return out
+    image_dir, names, mask_dir = find_photos(scene_dir)
+    log(f"sfm: posing {len(names)} photos{' inside their masks' if mask_dir else ''} (pycolmap, CPU)")
+    with ws.lock():
+        res = pose_photos(image_dir, names, mask_dir, out, cfg.matcher, cfg.sfm_max_image_size, thread_count())
+        atomic_write_json(out / SFM_SUMMARY, {"registered": res.registered, "photos": res.total,
+                                              "seconds": round(res.seconds, 2), "matcher": res.matcher})
+        atomic_write_bytes(out / SFM_INPUTS, (key + "\n").encode())
+    return out
 
 
 def run_prepare(ws: Workspace, scene_dir: Path, cfg: PrepareConfig, force: bool = False) -> bool:
     """Import `scene_dir`; returns False when the workspace was already up to date."""
-    scene = load_scene_for_prepare(scene_dir, cfg)
+    sfm_model = posed_photos(ws, scene_dir, cfg) if scene_dir.is_dir() and detect_format(scene_dir) == "photos" \
+        else None
+    scene = load_scene_for_prepare(scene_dir, cfg, sfm_model)
+    if sfm_model is not None:
+        s = read_json(sfm_model / SFM_SUMMARY)
+        scene.notes.append(f"poses by structure-from-motion: {s['registered']} of {s['photos']} photos registered "
+                           f"({s['matcher']} matching, {s['seconds']:.0f} s); the model is in {sfm_model}")
     config = as_dict(cfg)
     with ws.lock():
         fp = ws.begin("scene", config, {"source": str(scene_dir.resolve()), "inputs": scene_inputs_digest(scene)},

@@ -61,15 +61,18 @@ def repaired_again(ws: Workspace, splats, frames: list[Frame], background: torch
 
 
 def lpips_for_training(cfg: FineConfig, device: torch.device):
+    """LPIPS-VGG for the pseudo views (eval's weight search) and what to record: its weight files,
+    or why the term is off."""
     if cfg.lpips_weight <= 0:
-        return None
+        return None, {"used": False, "why": "lpips_weight is 0"}
     from ..lpips import LPIPS, LpipsUnavailable
 
     try:
-        return LPIPS("vgg").to(device)
+        fn = LPIPS("vgg", cfg.lpips_weights).to(device)
     except LpipsUnavailable as exc:
         log(f"fine: no LPIPS term ({exc})")
-        return None
+        return None, {"used": False, "why": str(exc)}
+    return fn, {"used": True, "weights": fn.sources}
 
 
 def run_fine(ws: Workspace, cfg: FineConfig, device: torch.device, seed: int, force: bool = False) -> bool:
@@ -82,7 +85,7 @@ def run_fine(ws: Workspace, cfg: FineConfig, device: torch.device, seed: int, fo
         splats, _ = load_checkpoint(ws.stage_dir("coarse") / CKPT, scene.norm)
         frames, weights = load_pseudo_views(ws)
         bg = background_for(scene)
-        lpips_fn = lpips_for_training(cfg, device)
+        lpips_fn, lpips_term = lpips_for_training(cfg, device)
         torch.manual_seed(seed)
         probe, probe_names = test_probe(ws, scene, cfg.curve_every_s, cfg.curve_views, bg, device)
         with ws.stage_run("fine", config, fp) as run:
@@ -106,7 +109,7 @@ def run_fine(ws: Workspace, cfg: FineConfig, device: torch.device, seed: int, fo
             save_checkpoint(run.path(CKPT), res.splats, scene.norm, res.iterations)
             n = export_ply(run.path(PLY), to_world(res.splats, scene.norm), VIEWER_SH_DEGREE)
             run.record.update({"num_gaussians": n, "iterations": res.iterations, "num_pseudo": len(frames),
-                               "rounds": max(1, cfg.rounds),
+                               "rounds": max(1, cfg.rounds), "lpips_term": lpips_term,
                                "train_seconds": round(res.seconds, 2), "final_loss": res.losses[-1], "seed": seed})
     log(f"fine: {n} Gaussians, {len(frames)} pseudo views, {res.seconds:.1f} s")
     return True
