@@ -155,3 +155,21 @@ def test_time_budget_stops_training_and_drives_the_schedule():
     t0 = time.perf_counter()
     res = train_gaussians(sp, f, cfg, torch.device("cpu"), extent=1.0)
     assert time.perf_counter() - t0 < 10 and res.iterations < 10**6
+
+
+def test_densification_defaults_live_in_one_place():
+    """The training configs inherit the strategy's fields: one default per field, and
+    strategy_from reads every one of them (a renamed field is an AttributeError, not a silent default)."""
+    import dataclasses
+
+    from wgs.config import CoarseConfig, TrainConfig
+    from wgs.gaussians.strategy import DensifyParams
+    from wgs.gaussians.trainer import strategy_from
+
+    assert issubclass(TrainConfig, DensifyParams)
+    cfg = CoarseConfig(refine_stop=123, max_gaussians=77)
+    s = strategy_from(cfg, 2.0)
+    assert (s.refine_stop, s.max_gaussians, s.scene_extent) == (123, 77, 2.0)
+    for f in dataclasses.fields(DensifyParams):
+        assert getattr(s, f.name) == getattr(cfg, f.name)
+    assert TrainConfig().refine_stop == DensifyParams().refine_stop

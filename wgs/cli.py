@@ -190,7 +190,7 @@ def info(obj: Ctx) -> None:
 
 
 def _register_stages() -> None:
-    from .stages import commands
+    from . import commands
 
     commands.register(cli, stage_common, workspace_option)
 

@@ -19,6 +19,7 @@ except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 
 from .errors import InputError
+from .gaussians.strategy import DensifyParams
 
 
 @dataclass
@@ -33,8 +34,9 @@ class PrepareConfig:
 
 
 @dataclass
-class TrainConfig:
-    """The shared 3DGS training loop (coarse, mask-data, fine)."""
+class TrainConfig(DensifyParams):
+    """The shared 3DGS training loop (coarse, mask-data, fine); densification fields and defaults
+    come from `gaussians.strategy.DensifyParams`."""
 
     iterations: int = 2000
     max_seconds: float | None = None  # a time budget: schedules then follow the elapsed fraction of it
@@ -52,16 +54,6 @@ class TrainConfig:
     random_background: bool = True
     init_points: int = 5000  # visual-hull points at most (more fits the training views worse at equal time)
     hull_resolution: int = 96
-    # densification (gsplat DefaultStrategy-like)
-    refine_start: int = 300
-    refine_stop: int = 1500
-    refine_every: int = 100
-    reset_every: int = 3000
-    grad_threshold: float = 2e-4
-    prune_opacity: float = 0.005
-    grow_scale3d: float = 0.01
-    prune_scale3d: float = 0.1
-    max_gaussians: int = 60000
     floater_every: int = 500
     floater_k: int = 8
     floater_lambda: float = 3.0

@@ -21,16 +21,23 @@ Optimizers = dict[str, torch.optim.Optimizer]
 
 
 @dataclass
-class DensifyStrategy:
+class DensifyParams:
+    """Thresholds and schedule of densification: the one place their defaults live (the training
+    configs inherit these fields, so a renamed field cannot be missed)."""
+
     grad_threshold: float = 2e-4  # in NDC units, as 3DGS
     prune_opacity: float = 0.005
     grow_scale3d: float = 0.01  # times the scene extent: smaller are cloned, larger split
     prune_scale3d: float = 0.1
-    refine_start: int = 500
-    refine_stop: int = 15000
+    refine_start: int = 300
+    refine_stop: int = 1500
     refine_every: int = 100
     reset_every: int = 3000
-    max_gaussians: int = 1_000_000
+    max_gaussians: int = 60000
+
+
+@dataclass
+class DensifyStrategy(DensifyParams):
     scene_extent: float = 1.0
 
     def initial_state(self) -> dict[str, Any]:

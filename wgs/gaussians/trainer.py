@@ -25,7 +25,7 @@ from ..threads import adapt as adapt_threads
 from .init import floater_mask
 from .render import rasterize
 from .splats import Splats, activate
-from .strategy import DensifyStrategy, remove
+from .strategy import DensifyParams, DensifyStrategy, remove
 
 # (frame index, iteration) -> per-pixel supervision weight [H, W] in [0, 1], or None for all pixels
 PixelWeights = Callable[[int, int], torch.Tensor | None]
@@ -71,9 +71,9 @@ def make_optimizers(params: Splats, cfg: TrainConfig, extent: float) -> dict[str
 
 
 def strategy_from(cfg: TrainConfig, extent: float) -> DensifyStrategy:
-    """The strategy's thresholds are the config's fields of the same names."""
-    shared = {f.name: getattr(cfg, f.name) for f in dataclasses.fields(DensifyStrategy) if hasattr(cfg, f.name)}
-    return DensifyStrategy(**shared, scene_extent=extent)
+    """The strategy's thresholds are the config's (inherited) fields of the same names."""
+    return DensifyStrategy(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(DensifyParams)},
+                           scene_extent=extent)
 
 
 def photometric_loss(render: torch.Tensor, target: torch.Tensor, ssim_weight: float,

@@ -12,7 +12,7 @@ from ..scene.dataset import load_prepared
 from ..scene.images import write_gif, write_png
 from ..scene.orbit import orbit_frames
 from ..workspace import Workspace
-from .s1_coarse import CKPT, background_for
+from .shared import CKPT, background_for
 
 STAGE_CKPT = {"coarse": ("coarse", CKPT), "fine": ("fine", CKPT)}
 

@@ -24,7 +24,7 @@ from ..progress import log
 from ..scene.dataset import PreparedScene, composite, load_prepared
 from ..wavelet.exr import write_subbands
 from ..workspace import STAGE_DIRS, StageRun, Workspace, atomic_write_json, read_json
-from .s1_coarse import background_for, initial_splats, subbands_hwc
+from .shared import background_for, initial_splats, subbands_hwc
 
 INDEX = "index.json"
 

@@ -19,9 +19,7 @@ from ..scene.images import write_png
 from ..scene.orbit import novel_views, sphere_views
 from ..wavelet.exr import write_subbands
 from ..workspace import StageRun, Workspace, atomic_write_json
-from .s1_coarse import CKPT, background_for
-
-VIEWS = "views.json"
+from .shared import CKPT, VIEWS, background_for
 
 
 def contact_sheet(rows: list[tuple[torch.Tensor, torch.Tensor]]) -> np.ndarray:

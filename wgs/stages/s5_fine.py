@@ -14,8 +14,7 @@ from ..progress import log
 from ..scene.dataset import Frame, load_prepared
 from ..wavelet.exr import read_subbands
 from ..workspace import Workspace, read_json
-from .s1_coarse import CKPT, PLY, background_for
-from .s4_repair import VIEWS
+from .shared import CKPT, PLY, VIEWS, background_for
 
 
 def pseudo_schedule(cfg: FineConfig):

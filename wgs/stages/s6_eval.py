@@ -24,7 +24,7 @@ from ..scene.dataset import composite, load_prepared
 from ..scene.images import write_gif, write_png
 from ..scene.orbit import orbit_frames
 from ..workspace import STAGE_DIRS, StageRun, Workspace, atomic_write_bytes, atomic_write_json
-from .s1_coarse import CKPT, background_for, initial_splats
+from .shared import CKPT, background_for, initial_splats
 
 METRICS_DOC = {
     "psnr": "mean over views of per-view PSNR (dB), images in [0, 1] on the dataset background",

@@ -61,7 +61,7 @@ def viewer_frame(w2cs: list[np.ndarray]) -> ViewerFrame:
 
 
 def model_path(ws, stage: str | None) -> tuple[str, Path]:
-    from ..stages.s1_coarse import CKPT
+    from ..stages.shared import CKPT
 
     if stage is None:
         stage = "fine" if ws.manifest("fine") is not None else "coarse"

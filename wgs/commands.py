@@ -1,4 +1,4 @@
-"""Click commands of the training stages (kept apart from cli.py so heavy imports stay lazy)."""
+"""Click commands of the stages and tools (apart from cli.py so heavy imports stay lazy)."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ from pathlib import Path
 
 import click
 
-from ..errors import WgsError
-from ..progress import log
+from .errors import WgsError
+from .progress import log
 
 
 def register(cli, stage_common, workspace_option) -> None:
@@ -21,7 +21,7 @@ def register(cli, stage_common, workspace_option) -> None:
     @click.pass_obj
     def coarse(obj, iterations, max_seconds, sh_degree, force, preset):
         """Train the coarse 3DGS G_c on the training views."""
-        from .s1_coarse import run_coarse
+        from .stages.s1_coarse import run_coarse
 
         cfg = obj.config("coarse", preset, iterations=iterations, max_seconds=max_seconds, sh_degree=sh_degree)
         if not 0 <= cfg.sh_degree <= 3:
@@ -38,7 +38,7 @@ def register(cli, stage_common, workspace_option) -> None:
     @click.pass_obj
     def mask_data(obj, strategy, iterations, n_regions, coverage, force, preset):
         """Corrupted/clean pairs for the repair models (trains G_d, or N models for loo)."""
-        from .s2_mask_data import run_mask_data
+        from .stages.s2_mask_data import run_mask_data
 
         cfg = obj.config("mask_data", preset, strategy=strategy, iterations=iterations, n_regions=n_regions,
                          coverage=coverage)
@@ -63,7 +63,7 @@ def register(cli, stage_common, workspace_option) -> None:
     def finetune(obj, domain, no_u, levels, d_steps, diffusion, sd_model, controlnet, u_max_steps, prior, force,
                  preset):
         """Fine-tune the repair model D (from the pretrained prior) and the HF U-Net U on this object."""
-        from .s3_finetune import run_finetune
+        from .stages.s3_finetune import run_finetune
 
         cfg = obj.config("finetune", preset, domain=domain, use_u=False if no_u else None, levels=levels,
                          d_steps=d_steps, u_max_steps=u_max_steps, diffusion=diffusion, sd_model=sd_model,
@@ -82,7 +82,7 @@ def register(cli, stage_common, workspace_option) -> None:
     @click.pass_obj
     def repair(obj, poses, num_views, strength, steps, views_per_train, force, preset):
         """Render G_c at novel views and repair them with D and U -> pseudo references."""
-        from .s4_repair import run_repair
+        from .stages.s4_repair import run_repair
 
         cfg = obj.config("repair", preset, poses=poses, num_views=num_views, strength=strength, steps=steps,
                          views_per_train=views_per_train)
@@ -98,7 +98,7 @@ def register(cli, stage_common, workspace_option) -> None:
     @click.pass_obj
     def fine(obj, iterations, rounds, lpips_weights, force, preset):
         """Refine G_c into G_f on the real and the pseudo references."""
-        from .s5_fine import run_fine
+        from .stages.s5_fine import run_fine
 
         cfg = obj.config("fine", preset, iterations=iterations, rounds=rounds, lpips_weights=lpips_weights)
         run_fine(obj.ws(), cfg, obj.torch_device(), obj.seed, force=force)
@@ -114,7 +114,7 @@ def register(cli, stage_common, workspace_option) -> None:
     @click.pass_obj
     def eval_(obj, lpips_net, lpips_weights, max_views, baseline, force, preset):
         """PSNR, SSIM, LPIPS of G_f and G_c on the test views, and the error-against-time report."""
-        from .s6_eval import run_eval
+        from .stages.s6_eval import run_eval
 
         final = "fine" if obj.ws().manifest("fine") is not None else "coarse"
         cfg = obj.config("eval", preset, lpips_net=lpips_net, lpips_weights=lpips_weights, max_views=max_views,
@@ -143,7 +143,7 @@ def register(cli, stage_common, workspace_option) -> None:
     def all_(obj, scene, views, downscale, strategy, domain, no_u, prior, force_repair, baseline, lpips_weights,
              matcher, force, preset):
         """Run every stage on SCENE (each skipped when up to date) and print the summary."""
-        from ..pipeline import print_summary, run_all
+        from .pipeline import print_summary, run_all
 
         scene = Path(scene).resolve()  # messages name the folder, not "."
         if obj.workspace is None:  # beside the scene folder: SCENE_wgs (`wgs all .` too)
@@ -193,7 +193,7 @@ def register(cli, stage_common, workspace_option) -> None:
         import sys
         import time
 
-        from .. import batch as b
+        from . import batch as b
 
         tasks = b.read_scene_list(scenes, cli.commands["all"])
         if preset:
@@ -237,8 +237,8 @@ def register(cli, stage_common, workspace_option) -> None:
     @click.pass_obj
     def ablate(obj, scene, rows, repeats, views, downscale, preset):
         """The paper's ablation on SCENE: one workspace per row under -w ROOT, and ROOT/ablation.{md,csv,json,png}."""
-        from ..ablation import aggregate, parse_rows, run_ablation, write_outputs
-        from ..progress import results
+        from .ablation import aggregate, parse_rows, run_ablation, write_outputs
+        from .progress import results
 
         if repeats < 1:
             raise click.BadParameter("must be >= 1", param_hint="--repeats")
@@ -259,7 +259,7 @@ def register(cli, stage_common, workspace_option) -> None:
     @click.pass_obj
     def render(obj, stage, views, frames, video):
         """Render a trained model to PNGs under WS/renders/STAGE_VIEWS/."""
-        from .render_views import run_render
+        from .stages.render_views import run_render
 
         ws = obj.ws()
         if stage is None:
@@ -278,8 +278,8 @@ def register(cli, stage_common, workspace_option) -> None:
         import time
         import webbrowser
 
-        from ..progress import results
-        from ..viewer import serving, site
+        from .progress import results
+        from .viewer import serving, site
 
         ws = obj.ws()
         if not ws.root.is_dir():
@@ -305,10 +305,10 @@ def register(cli, stage_common, workspace_option) -> None:
     @click.pass_obj
     def export(obj, stage, fmt, output):
         """Write the model for other viewers and tools (world coordinates of the input scene)."""
-        from ..gaussians.splats import VIEWER_SH_DEGREE, export_ply, load_checkpoint, splat_bytes
-        from ..progress import results
-        from ..viewer import model_path
-        from ..workspace import atomic_write_bytes
+        from .gaussians.splats import VIEWER_SH_DEGREE, export_ply, load_checkpoint, splat_bytes
+        from .progress import results
+        from .viewer import model_path
+        from .workspace import atomic_write_bytes
 
         ws = obj.ws()
         stage, ckpt = model_path(ws, stage)
