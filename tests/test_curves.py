@@ -45,6 +45,12 @@ def test_sparse_probe_keeps_start_and_end():
     assert [p["iteration"] for p in res.curve] == [0, 4]
 
 
+def test_probe_every_so_many_iterations_on_a_fast_run():
+    """A run faster than the probe interval still gets a curve: a point every `every_iterations`."""
+    res = tiny_training(Probe(lambda s: {"psnr": 1.0}, every_s=1e9, every_iterations=3), iterations=10)
+    assert [p["iteration"] for p in res.curve] == [0, 3, 6, 9, 10]
+
+
 def test_no_probe_no_curve():
     res = tiny_training(None)
     assert res.curve == [] and res.probe_seconds == 0.0

@@ -67,6 +67,7 @@ class CurveConfig:
 
     curve_every_s: float = 5.0  # 0: no curve
     curve_views: int = 4
+    curve_points: int = 6  # and a probe at least every iterations / curve_points (short runs, fast machines)
 
 
 @dataclass

@@ -25,10 +25,13 @@ def probe_views(test_names: list[str], k: int) -> list[int]:
     return sorted({round(i * (n - 1) / max(k - 1, 1)) for i in range(k)})
 
 
-def test_probe(ws: Workspace, scene: PreparedScene, every_s: float, k: int, background: torch.Tensor,
-               device: torch.device) -> tuple[Probe | None, list[str]]:
-    """Mean PSNR / SSIM of the splats on k test views, and their names; (None, []) when the scene
-    has no test views, k = 0 or every_s = 0."""
+def test_probe(ws: Workspace, scene: PreparedScene, cfg, background: torch.Tensor, device: torch.device
+               ) -> tuple[Probe | None, list[str]]:
+    """Mean PSNR / SSIM of the splats on `cfg.curve_views` test views, and their names, every
+    `cfg.curve_every_s` training seconds and at least `cfg.curve_points` times over the iterations
+    (not under a time budget); (None, []) when the scene has no test views or the curve is off.
+    `cfg`: a training config with CurveConfig's fields."""
+    every_s, k = cfg.curve_every_s, cfg.curve_views
     ids = probe_views([f.name for f in scene.test], k) if every_s > 0 else []
     if not ids:
         return None, []
@@ -43,7 +46,8 @@ def test_probe(ws: Workspace, scene: PreparedScene, every_s: float, k: int, back
             ss.append(ssim(rgb, ref))
         return {"psnr": sum(ps) / len(ps), "ssim": sum(ss) / len(ss)}
 
-    return Probe(fn, every_s), [f.name for f in frames]
+    every_it = cfg.iterations // cfg.curve_points if cfg.curve_points > 0 and not cfg.max_seconds else 0
+    return Probe(fn, every_s, max(every_it, 1) if every_it else 0), [f.name for f in frames]
 
 
 def write_curve(path: Path, res: TrainResult, views: list[str]) -> None:

@@ -48,10 +48,12 @@ class PseudoViews:
 @dataclass
 class Probe:
     """Quality during training: fn(splats) -> metrics (e.g. test PSNR), run every `every_s` seconds
-    of training time, at the start and at the end; its own time is left out of the training clock."""
+    of training time (and every `every_iterations` iterations when > 0), at the start and at the
+    end; its own time is left out of the training clock."""
 
     fn: Callable[[Splats], dict[str, float]]
     every_s: float
+    every_iterations: int = 0
 
 
 @dataclass
@@ -214,7 +216,8 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
                 prog.update(0, completed=it, status=f"loss {sum(recent) / len(recent):.4f}  "
                             f"{params['means'].shape[0]} gaussians  {rate:.1f} it/s")
             finished = it == cfg.iterations or bool(cfg.max_seconds and time.perf_counter() - t0 > cfg.max_seconds)
-            if probe is not None and (finished or time.perf_counter() - t0 - curve[-1]["seconds"] >= probe.every_s):
+            if probe is not None and (finished or time.perf_counter() - t0 - curve[-1]["seconds"] >= probe.every_s
+                                      or 0 < probe.every_iterations <= it - curve[-1]["iteration"]):
                 measure()
             if checkpoint is not None and (finished or checkpoint.due()):
                 checkpoint.save(snapshot())

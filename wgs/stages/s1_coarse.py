@@ -42,7 +42,7 @@ def run_coarse(ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: int
         splats = initial_splats(scene, cfg, seed)
         log(f"coarse: {splats['means'].shape[0]} initial Gaussians, {len(scene.train)} views, "
             f"{cfg.iterations} iterations on {device}")
-        probe, probe_names = test_probe(ws, scene, cfg.curve_every_s, cfg.curve_views, background_for(scene), device)
+        probe, probe_names = test_probe(ws, scene, cfg, background_for(scene), device)
         with ws.stage_run("coarse", config, fp) as run:
             res = train_gaussians(splats, scene.train, cfg, device, extent=1.0, desc="coarse", seed=seed,
                                   has_masks=scene.has_masks, checkpoint=run.checkpointer("gc"), probe=probe)

@@ -86,7 +86,7 @@ def run_fine(ws: Workspace, cfg: FineConfig, device: torch.device, seed: int, fo
         bg = background_for(scene)
         lpips_fn, lpips_term = lpips_for_training(cfg, device)
         torch.manual_seed(seed)
-        probe, probe_names = test_probe(ws, scene, cfg.curve_every_s, cfg.curve_views, bg, device)
+        probe, probe_names = test_probe(ws, scene, cfg, bg, device)
         with ws.stage_run("fine", config, fp) as run:
             res, curve, probe_s, offset = None, [], 0.0, 0.0
             for r in range(1, max(1, cfg.rounds) + 1):

@@ -222,7 +222,7 @@ def train_baseline(run: StageRun, ws: Workspace, scene, times: list[dict[str, An
     # the time budget decides; iterations are an upper bound and the schedules follow elapsed time
     cfg = dataclasses.replace(base, iterations=int(base.iterations * scale * 2), max_seconds=budget,
                               refine_stop=int(base.refine_stop * scale))
-    probe, names = test_probe(ws, scene, cfg.curve_every_s, cfg.curve_views, background_for(scene), device)
+    probe, names = test_probe(ws, scene, cfg, background_for(scene), device)
     res = train_gaussians(initial_splats(scene, cfg, seed), scene.train, cfg, device, extent=1.0,
                           desc="eval: plain 3DGS baseline", seed=seed, has_masks=scene.has_masks,
                           checkpoint=run.checkpointer("baseline"), probe=probe)
