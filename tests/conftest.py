@@ -8,6 +8,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +20,10 @@ LEGO = ROOT.parent / "shared" / "data" / "lego"
 # a fixed thread count: the tests compare reruns bit for bit, and sums depend on the thread count
 # (wgs otherwise adapts it to other processes' load, see wgs/threads.py)
 os.environ.setdefault("WGS_THREADS", str(len(os.sched_getaffinity(0))))
+# No LPIPS weights in the tests, whatever this machine holds (tests that want them bring their own):
+# results then say "lpips": null and why, the same everywhere.
+os.environ["TORCH_HOME"] = tempfile.mkdtemp(prefix="wgs-tests-torch-home-")
+os.environ.pop("WGS_LPIPS_WEIGHTS", None)
 
 # The smallest config that runs every stage (seconds per `wgs all` on a 48-64 px scene).
 TINY = """

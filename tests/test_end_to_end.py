@@ -173,9 +173,15 @@ def chromium() -> str | None:
     return shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
 
 
-def screenshots(urls: list[str], tmp_path) -> list:
+def drawn(shot) -> bool:
+    """The viewer's canvas shows something: > 5 % non-white pixels below the title bar."""
+    return bool((shot[120:360, 160:480].mean(-1) < 0.9).mean() > 0.05)
+
+
+def screenshots(urls: list[str], tmp_path, done=lambda url, shot: True) -> list:
     """Headless Chromium (driven by Playwright, WebGL on SwiftShader: no GPU) pictures [H, W, 3] of
-    each page once it says it is ready (the viewer sets body[data-ready]) and has drawn."""
+    each page once it says it is ready (the viewer sets body[data-ready]) and `done(url, shot)`
+    holds (retried for up to 30 s: the depth sort runs in a worker, later on a busy machine)."""
     import time
 
     sync_playwright = pytest.importorskip("playwright.sync_api").sync_playwright
@@ -196,10 +202,14 @@ def screenshots(urls: list[str], tmp_path) -> list:
                 page.goto(url)
                 page.wait_for_function("document.readyState === 'complete' && (!document.getElementById('canvas')"
                                        " || document.body.dataset.ready)", timeout=60000)
-                time.sleep(2)  # a few animation frames: the depth sort runs in a worker
                 path = tmp_path / f"shot{i}.png"
-                page.screenshot(path=str(path))
-                out.append(read_image(path)[..., :3])
+                for _ in range(30):
+                    time.sleep(1)
+                    page.screenshot(path=str(path))
+                    shot = read_image(path)[..., :3]
+                    if done(url, shot):
+                        break
+                out.append(shot)
             assert not errors, errors
         finally:
             browser.close()
@@ -227,9 +237,9 @@ def test_viewer_serves_the_model_and_the_report(tiny, tmp_path):
         assert b"MIT License" in urlopen(url + "LICENSE.gsplat").read()
         with pytest.raises(HTTPError):
             urlopen(url + "../scene/scene.json")
-        viewer, report = screenshots([url, url + "report.html"], tmp_path)
-        centre = viewer[120:360, 160:480]  # below the title bar: only the canvas
-        assert (centre.mean(-1) < 0.9).mean() > 0.05, "the viewer's canvas is blank"
+        viewer, report = screenshots([url, url + "report.html"], tmp_path,
+                                     done=lambda u, shot: u.endswith(".html") or drawn(shot))
+        assert drawn(viewer), "the viewer's canvas is blank"
         assert report.std() > 0.05 and (report.mean(-1) < 0.5).mean() > 0.005, "the report is blank"
 
 
