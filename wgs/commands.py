@@ -9,6 +9,9 @@ import click
 from .errors import WgsError
 from .progress import log
 
+model_stage_option = click.option("--stage", "stage", type=click.Choice(["coarse", "fine"]), default=None,
+                                  help="Which model (default: the newest, fine when it exists).")
+
 
 def register(cli, stage_common, workspace_option) -> None:
     """Add the stage subcommands to the `wgs` group."""
@@ -249,8 +252,7 @@ def register(cli, stage_common, workspace_option) -> None:
         results.print((root / "ablation.md").read_text())
 
     @cli.command()
-    @click.option("--stage", "stage", type=click.Choice(["coarse", "fine"]), default=None,
-                  help="Which model (default: the newest, fine when it exists).")
+    @model_stage_option
     @click.option("--views", type=click.Choice(["test", "train", "path"]), default="test", help="Cameras to render.")
     @click.option("--frames", type=int, default=60, help="Number of frames for --views path.")
     @click.option("--video", is_flag=True,
@@ -260,15 +262,13 @@ def register(cli, stage_common, workspace_option) -> None:
     def render(obj, stage, views, frames, video):
         """Render a trained model to PNGs under WS/renders/STAGE_VIEWS/."""
         from .stages.render_views import run_render
+        from .stages.shared import newest_model
 
         ws = obj.ws()
-        if stage is None:
-            stage = "fine" if ws.manifest("fine") is not None else "coarse"
-        run_render(ws, stage, views, frames, obj.torch_device(), video)
+        run_render(ws, stage or newest_model(ws), views, frames, obj.torch_device(), video)
 
     @cli.command()
-    @click.option("--stage", "stage", type=click.Choice(["coarse", "fine"]), default=None,
-                  help="Which model (default: the newest, fine when it exists).")
+    @model_stage_option
     @click.option("--port", type=click.IntRange(0, 65535), default=8765, help="Port on 127.0.0.1 (0: any free one).")
     @click.option("--no-browser", is_flag=True, help="Print the address only; do not open a browser.")
     @workspace_option
@@ -294,8 +294,7 @@ def register(cli, stage_common, workspace_option) -> None:
                 time.sleep(3600)
 
     @cli.command()
-    @click.option("--stage", "stage", type=click.Choice(["coarse", "fine"]), default=None,
-                  help="Which model (default: the newest, fine when it exists).")
+    @model_stage_option
     @click.option("--format", "fmt", type=click.Choice(["ply", "splat"]), default="ply",
                   help="ply: INRIA 3DGS layout, SH degree 3 (SIBR and most viewers); splat: antimatter15's "
                        "compact layout for WebGL viewers (no view-dependent colour).")
@@ -305,7 +304,7 @@ def register(cli, stage_common, workspace_option) -> None:
     @click.pass_obj
     def export(obj, stage, fmt, output):
         """Write the model for other viewers and tools (world coordinates of the input scene)."""
-        from .gaussians.splats import VIEWER_SH_DEGREE, export_ply, load_checkpoint, splat_bytes
+        from .gaussians.splats import SPLAT_ROW, VIEWER_SH_DEGREE, export_ply, load_checkpoint, splat_bytes
         from .progress import results
         from .viewer import model_path
         from .workspace import atomic_write_bytes
@@ -320,5 +319,5 @@ def register(cli, stage_common, workspace_option) -> None:
         else:
             data = splat_bytes(splats)
             atomic_write_bytes(out, data)
-            n = len(data) // 32
+            n = len(data) // SPLAT_ROW
         results.print(f"export: {n} Gaussians of the {stage} model -> {out}")

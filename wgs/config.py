@@ -278,7 +278,8 @@ def as_dict(cfg: Any) -> dict[str, Any]:
 
 CHOICES: dict[str, tuple[str, ...]] = {"strategy": ("orm", "offline-rm", "loo"), "domain": ("wavelet", "rgb"),
                                        "poses": ("sphere", "arc"),
-                                       "lpips_net": ("alex", "vgg"), "diffusion": ("embedded", "controlnet")}
+                                       "lpips_net": ("alex", "vgg"), "diffusion": ("embedded", "controlnet"),
+                                       "matcher": ("auto", "exhaustive", "sequential")}
 
 
 def check_choices(cfg: Any) -> None:

@@ -78,6 +78,7 @@ def _bin_tiles(means2d, conics, opacities, extents, order, width, height, tile, 
     rect = np.empty((V, 4), np.int64)
     reach = np.empty(V)
     counts = np.zeros(n_tiles + 1, np.int64)
+    total = 0
     for j in range(V):
         g = order[j]
         A, B, C = np.float64(conics[g, 0]), np.float64(conics[g, 1]), np.float64(conics[g, 2])
@@ -98,16 +99,12 @@ def _bin_tiles(means2d, conics, opacities, extents, order, width, height, tile, 
         ty0 = max(0, int(math.floor(lo_y / tile)))
         ty1 = min(tiles_y, int(math.floor(hi_y / tile)) + 1)
         rect[j, 0], rect[j, 1], rect[j, 2], rect[j, 3] = tx0, tx1, ty0, ty1
-        for ty in range(ty0, ty1):
-            y0 = ty * tile + 0.5 - my
-            y1 = min(height, ty * tile + tile) - 0.5 - my
-            for tx in range(tx0, tx1):
-                if _touches(A, B, C, r2, tx * tile + 0.5 - mx, min(width, tx * tile + tile) - 0.5 - mx, y0, y1):
-                    counts[ty * tiles_x + tx + 1] += 1
-    for t in range(n_tiles):
-        counts[t + 1] += counts[t]
-    fill = counts[:-1].copy()
-    ids = np.empty(counts[n_tiles], np.int64)
+        total += max(0, tx1 - tx0) * max(0, ty1 - ty0)
+    # one ellipse-tile test per (Gaussian, tile of its box); the hits, in depth order, then go to
+    # their tiles by a counting sort
+    hit_tile = np.empty(total, np.int64)
+    hit_id = np.empty(total, np.int64)
+    m = 0
     for j in range(V):
         g = order[j]
         A, B, C = np.float64(conics[g, 0]), np.float64(conics[g, 1]), np.float64(conics[g, 2])
@@ -118,8 +115,18 @@ def _bin_tiles(means2d, conics, opacities, extents, order, width, height, tile, 
             for tx in range(rect[j, 0], rect[j, 1]):
                 if _touches(A, B, C, reach[j], tx * tile + 0.5 - mx, min(width, tx * tile + tile) - 0.5 - mx, y0, y1):
                     t = ty * tiles_x + tx
-                    ids[fill[t]] = g
-                    fill[t] += 1
+                    hit_tile[m] = t
+                    hit_id[m] = g
+                    counts[t + 1] += 1
+                    m += 1
+    for t in range(n_tiles):
+        counts[t + 1] += counts[t]
+    fill = counts[:-1].copy()
+    ids = np.empty(counts[n_tiles], np.int64)
+    for q in range(m):
+        t = hit_tile[q]
+        ids[fill[t]] = hit_id[q]
+        fill[t] += 1
     return ids, counts
 
 

@@ -65,9 +65,9 @@ def _colmap_masks(image_dir: Path, names: list[str], mask_dir: Path, out: Path) 
         if src is None:
             raise InputError(f"photo {name} has no mask (masks/ holds masks for some photos only)", mask_dir)
         m = to_mask(read_image(src))
-        img = read_image(image_dir / name)
-        if m.shape != img.shape[:2]:
-            raise InputError(f"mask is {m.shape[1]}x{m.shape[0]} but its photo is {img.shape[1]}x{img.shape[0]}", src)
+        w, h = image_size(image_dir / name)  # the header only: the photo itself is COLMAP's to read
+        if m.shape != (h, w):
+            raise InputError(f"mask is {m.shape[1]}x{m.shape[0]} but its photo is {w}x{h}", src)
         r = max(2, round(0.01 * max(m.shape)))  # a margin: corners on the object's outline are good features
         grown = binary_dilation(m > 0.5, np.ones((2 * r + 1, 2 * r + 1), bool))
         write_png(out / f"{name}.png", grown.astype(np.float32))

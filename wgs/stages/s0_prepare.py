@@ -10,7 +10,7 @@ from ..errors import InputError
 from ..progress import log
 from ..scene.formats import detect_format
 from ..scene.prepare import load_scene_for_prepare, prepare, scene_inputs_digest
-from ..scene.sfm import MATCHERS, find_photos, pose_photos
+from ..scene.sfm import find_photos, pose_photos
 from ..threads import thread_count
 from ..workspace import Workspace, atomic_write_bytes, atomic_write_json, read_json
 
@@ -19,8 +19,7 @@ SFM_INPUTS = "inputs.sha256"
 SFM_SUMMARY = "summary.json"
 
 
-def _photos_digest(scene_dir: Path, cfg: PrepareConfig) -> str:
-    image_dir, names, mask_dir = find_photos(scene_dir)
+def _photos_digest(image_dir: Path, names: list[str], mask_dir: Path | None, cfg: PrepareConfig) -> str:
     h = hashlib.sha256(f"sfm-1:{cfg.matcher}:{cfg.sfm_max_image_size}".encode())
     for folder in (image_dir, mask_dir):
         for p in sorted(folder.iterdir()) if folder is not None else ():
@@ -33,14 +32,12 @@ def _photos_digest(scene_dir: Path, cfg: PrepareConfig) -> str:
 def posed_photos(ws: Workspace, scene_dir: Path, cfg: PrepareConfig) -> Path:
     """The COLMAP model of the photos in `scene_dir`, made once by structure-from-motion and kept
     in `WS/sfm/` until the photos or the settings change."""
-    if cfg.matcher not in MATCHERS:
-        raise InputError(f"unknown matcher {cfg.matcher!r}: use {', '.join(MATCHERS)}")
     out = ws.root / SFM_DIR
-    key = _photos_digest(scene_dir, cfg)
+    image_dir, names, mask_dir = find_photos(scene_dir)
+    key = _photos_digest(image_dir, names, mask_dir, cfg)
     if (out / SFM_INPUTS).is_file() and (out / SFM_INPUTS).read_text().strip() == key:
         log("sfm: photos already posed, reused")
         return out
-    image_dir, names, mask_dir = find_photos(scene_dir)
     log(f"sfm: posing {len(names)} photos{' inside their masks' if mask_dir else ''} (pycolmap, CPU)")
     with ws.lock():
         res = pose_photos(image_dir, names, mask_dir, out, cfg.matcher, cfg.sfm_max_image_size, thread_count())

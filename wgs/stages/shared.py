@@ -43,3 +43,8 @@ def subbands_hwc(img: torch.Tensor) -> dict[str, object]:
     """[H, W, 3] -> {"LL","LH","HL","HH": [h, w, 3] numpy} with one Haar level."""
     ll, [(lh, hl, hh)] = dwt2(img.permute(2, 0, 1)[None].double(), 1)
     return {n: b[0].permute(1, 2, 0).float().numpy() for n, b in (("LL", ll), ("LH", lh), ("HL", hl), ("HH", hh))}
+
+
+def newest_model(ws) -> str:
+    """The stage whose model a command shows by default: fine when it has run, else coarse."""
+    return "fine" if ws.manifest("fine") is not None else "coarse"

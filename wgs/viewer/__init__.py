@@ -61,10 +61,9 @@ def viewer_frame(w2cs: list[np.ndarray]) -> ViewerFrame:
 
 
 def model_path(ws, stage: str | None) -> tuple[str, Path]:
-    from ..stages.shared import CKPT
+    from ..stages.shared import CKPT, newest_model
 
-    if stage is None:
-        stage = "fine" if ws.manifest("fine") is not None else "coarse"
+    stage = stage or newest_model(ws)
     path = ws.stage_dir(stage) / CKPT
     if ws.manifest(stage) is None or not path.is_file():
         raise InputError(f"no {stage} model: run `wgs {stage}` (or `wgs all`) first", ws.stage_dir(stage))
@@ -79,6 +78,7 @@ def site(ws, stage: str | None) -> dict[str, bytes | Path]:
     stage, ckpt = model_path(ws, stage)
     scene = load_prepared(ws)
     splats, _ = load_checkpoint(ckpt, scene.norm)  # normalised world, like the cameras
+    report = ws.stage_dir("eval") / "report.html"
     frame = viewer_frame([f.viewmat.double().numpy() for f in scene.train])
     first = scene.train[0]
     files: dict[str, bytes | Path] = {
@@ -89,9 +89,8 @@ def site(ws, stage: str | None) -> dict[str, bytes | Path]:
         "/view.json": json.dumps({"stage": stage, "gaussians": int(splats["means"].shape[0]),
                                   "alpha": frame.alpha, "beta": frame.beta, "radius": frame.radius,
                                   "focal": float(first.K[1, 1]) / first.height,  # the photos' field of view
-                                  "report": (ws.stage_dir("eval") / "report.html").is_file()}).encode(),
+                                  "report": report.is_file()}).encode(),
     }
-    report = ws.stage_dir("eval") / "report.html"
     if report.is_file():
         files["/report.html"] = report
     return files
