@@ -12,6 +12,7 @@ from typing import Any
 import torch
 
 from .project import project_gaussians
+from .project_numba import project_gaussians_numba
 from .raster_torch import rasterize_pixels_torch
 from .sh import eval_sh, sh_degree_of
 
@@ -60,7 +61,11 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
     if backend == "gsplat":
         return _rasterize_gsplat(means, quats, scales, opacities, colors, viewmat, K, width, height, background,
                                  sh_degree, render_depth)
-    proj = project_gaussians(means, quats, scales, viewmat, K, width, height, near=near)
+    # the numba projection differentiates means, quats and scales only; a camera being optimised
+    # takes the reference
+    fast_proj = backend == "numba" and not (viewmat.requires_grad or K.requires_grad)
+    proj = (project_gaussians_numba if fast_proj else project_gaussians)(means, quats, scales, viewmat, K, width,
+                                                                        height, near=near)
     if colors.dim() == 3:
         deg = sh_degree_of(colors.shape[1]) if sh_degree is None else sh_degree
         campos = -viewmat[:3, :3].T @ viewmat[:3, 3]
