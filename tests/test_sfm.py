@@ -154,7 +154,8 @@ def test_unknown_matcher_is_refused(photos, tmp_path):
     proc = run_cli(["-w", tmp_path / "ws", "prepare", root, "--matcher", "vocab"], tmp_path)
     assert proc.returncode == 2 and "vocab" in proc.stderr
     (tmp_path / "wgs.toml").write_text('[prepare]\nmatcher = "vocab"\n')
-    expect_error(tmp_path, ["--config", tmp_path / "wgs.toml", "-w", tmp_path / "ws", "prepare", root], "matcher", "vocab")
+    expect_error(tmp_path, ["--config", tmp_path / "wgs.toml", "-w", tmp_path / "ws", "prepare", root],
+                 "matcher", "vocab")
 
 
 def test_a_photo_without_its_mask(tmp_path):

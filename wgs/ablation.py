@@ -110,6 +110,7 @@ def run_ablation(ctx, scene_dir: Path, root: Path, rows: list[Row], repeats: int
                 cfg.iterations = int(cfg.iterations * scale * 4)
                 cfg.refine_stop = int(cfg.refine_stop * scale * 4)
                 cfg.max_seconds = budget - shared.manifest("scene")["wall_time_s"]
+                cfg.ensemble = 1  # plain 3DGS: one model for the whole budget
                 run_coarse(ws, cfg, device, seed)
                 run_eval(ws, ctx.config("eval", preset), device, final="coarse")
                 timings[row.name] = {"scene": ws.manifest("scene")["wall_time_s"],

@@ -101,7 +101,8 @@ def bench_pipeline(scene: str, root: str, preset: str, views: int, downscale: in
     its = int(coarse["iterations"] * scale)
     refine_stop = int(coarse["config"]["refine_stop"] * scale)
     cfg = base / "3dgs.toml"
-    cfg.write_text(f"[coarse]\niterations = {its}\nmax_seconds = {t_all:.1f}\nrefine_stop = {refine_stop}\n")
+    cfg.write_text(f"[coarse]\niterations = {its}\nmax_seconds = {t_all:.1f}\nrefine_stop = {refine_stop}\n"
+                   "ensemble = 1\n")
     t_3dgs = wgs_cli("--config", str(cfg), "-w", str(ws_3dgs), "coarse", *pre)
     wgs_cli("-w", str(ws_3dgs), "eval", *pre)
     res_3dgs = json.loads((ws_3dgs / "6_eval" / "results.json").read_text())

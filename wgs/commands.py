@@ -20,13 +20,17 @@ def register(cli, stage_common, workspace_option) -> None:
     @click.option("--iterations", type=int, default=None, help="Training iterations.")
     @click.option("--max-seconds", type=float, default=None, help="Stop training after this many seconds.")
     @click.option("--sh-degree", type=int, default=None, help="Spherical-harmonics degree (0-3).")
+    @click.option("--ensemble", type=click.IntRange(min=1), default=None,
+                  help="Coarse models from consecutive seeds; the repair averages their repaired renders "
+                       "(default 4; 1: G_c alone).")
     @stage_common
     @click.pass_obj
-    def coarse(obj, iterations, max_seconds, sh_degree, force, preset):
+    def coarse(obj, iterations, max_seconds, sh_degree, ensemble, force, preset):
         """Train the coarse 3DGS G_c on the training views."""
         from .stages.s1_coarse import run_coarse
 
-        cfg = obj.config("coarse", preset, iterations=iterations, max_seconds=max_seconds, sh_degree=sh_degree)
+        cfg = obj.config("coarse", preset, iterations=iterations, max_seconds=max_seconds, sh_degree=sh_degree,
+                         ensemble=ensemble)
         if not 0 <= cfg.sh_degree <= 3:
             raise click.BadParameter(f"SH degree must be 0..3, got {cfg.sh_degree}", param_hint="--sh-degree")
         run_coarse(obj.ws(), cfg, obj.torch_device(), obj.seed, force=force)
@@ -134,6 +138,9 @@ def register(cli, stage_common, workspace_option) -> None:
     @click.option("--no-u", "no_u", is_flag=True, default=None, help="Do not train or use the HF U-Net.")
     @click.option("--prior", default=None, metavar="builtin|none|DIR",
                   help="Repair prior of D and U: builtin (default), none (from scratch), or a folder.")
+    @click.option("--ensemble", type=click.IntRange(min=1), default=None,
+                  help="Coarse models from consecutive seeds; the repair averages their repaired renders "
+                       "(default 4; 1: G_c alone).")
     @click.option("--force-repair", is_flag=True, help="Run the repair stages even with many training views.")
     @click.option("--baseline", is_flag=True, default=None,
                   help="Also train plain 3DGS for the same training time and plot its curve (eval).")
@@ -143,8 +150,8 @@ def register(cli, stage_common, workspace_option) -> None:
                   help="Photos without poses: feature matching for structure-from-motion.")
     @stage_common
     @click.pass_obj
-    def all_(obj, scene, views, downscale, strategy, domain, no_u, prior, force_repair, baseline, lpips_weights,
-             matcher, force, preset):
+    def all_(obj, scene, views, downscale, strategy, domain, no_u, prior, ensemble, force_repair, baseline,
+             lpips_weights, matcher, force, preset):
         """Run every stage on SCENE (each skipped when up to date) and print the summary."""
         from .pipeline import print_summary, run_all
 
@@ -155,6 +162,7 @@ def register(cli, stage_common, workspace_option) -> None:
             obj.workspace = scene.with_name(scene.name + "_wgs")
             log(f"workspace: {obj.workspace}")
         overrides = {"prepare": {"views": views, "downscale": downscale, "matcher": matcher},
+                     "coarse": {"ensemble": ensemble},
                      "mask_data": {"strategy": strategy},
                      "finetune": {"domain": domain, "use_u": False if no_u else None, "prior": prior},
                      "fine": {"lpips_weights": lpips_weights},

@@ -1,4 +1,6 @@
-"""Stage 1: coarse 3DGS `G_c` on the sparse training views, its renders and their Haar subbands."""
+"""Stage 1: coarse 3DGS `G_c` on the sparse training views, its renders and their Haar subbands;
+with `ensemble` > 1 also that many - 1 more coarse models from other seeds (`members/`), whose
+repaired renders the repair stage averages with G_c's."""
 
 from __future__ import annotations
 
@@ -14,7 +16,7 @@ from ..scene.dataset import PreparedScene, composite, load_prepared
 from ..scene.images import write_png
 from ..wavelet.exr import write_subbands
 from ..workspace import StageRun, Workspace, atomic_write_json
-from .shared import CKPT, PLY, background_for, initial_splats, subbands_hwc
+from .shared import CKPT, PLY, background_for, initial_splats, member_checkpoint, subbands_hwc
 
 
 def write_coarse_outputs(run: StageRun, scene: PreparedScene, splats: Splats, device: torch.device) -> dict:
@@ -53,8 +55,18 @@ def run_coarse(ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: int
             per_view = write_coarse_outputs(run, scene, res.splats, device)
             atomic_write_json(run.path("train_psnr.json"), per_view)
             mean_psnr = sum(per_view.values()) / len(per_view)
+            member_s = []
+            for i in range(1, cfg.ensemble):
+                m = train_gaussians(initial_splats(scene, cfg, seed + i), scene.train, cfg, device, extent=1.0,
+                                    desc=f"coarse member {i + 1}/{cfg.ensemble}", seed=seed + i,
+                                    has_masks=scene.has_masks, checkpoint=run.checkpointer(f"gc{i}"))
+                save_checkpoint(run.path(member_checkpoint(i)), m.splats, scene.norm, m.iterations)
+                member_s.append(round(m.seconds, 2))
+            # train_seconds: G_c alone (what a plain 3DGS of this config costs); the members' beside it
             run.record.update({"num_gaussians": n_ply, "iterations": res.iterations,
                                "train_seconds": round(res.seconds, 2), "final_loss": res.losses[-1],
-                               "train_psnr": round(mean_psnr, 3), "seed": seed, "device": str(device)})
-    log(f"coarse: {n_ply} Gaussians, training-view PSNR {mean_psnr:.2f} dB, {res.seconds:.1f} s")
+                               "train_psnr": round(mean_psnr, 3), "seed": seed, "device": str(device),
+                               "ensemble": cfg.ensemble, "member_seconds": member_s})
+    log(f"coarse: {n_ply} Gaussians, training-view PSNR {mean_psnr:.2f} dB, {res.seconds:.1f} s"
+        + (f"; {cfg.ensemble - 1} more ensemble members in {sum(member_s):.1f} s" if member_s else ""))
     return True

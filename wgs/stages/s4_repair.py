@@ -1,6 +1,7 @@
 """Stage 4: pseudo references. Render G_c at novel viewpoints (from the training cameras only),
-Haar-DWT, D repairs the LL subband (SDEdit), U repairs the HF subbands, inverse DWT. With an
-RGB-domain D (`wgs finetune --domain rgb`) D repairs the RGB render and U is not used."""
+Haar-DWT, D repairs the LL subband, U repairs the HF subbands, inverse DWT. With an RGB-domain D
+(`wgs finetune --domain rgb`) D repairs the RGB render and U is not used. When the coarse stage
+trained an ensemble, every member's render is repaired and the repairs are averaged."""
 
 from __future__ import annotations
 
@@ -10,16 +11,14 @@ import numpy as np
 import torch
 
 from ..config import RepairConfig, as_dict
-from ..gaussians.splats import load_checkpoint
-from ..gaussians.trainer import render_frame
-from ..models.repair import load_repairer, repair_image
+from ..models.repair import load_repairer
 from ..progress import log
 from ..scene.dataset import load_prepared
 from ..scene.images import write_png
 from ..scene.orbit import novel_views, sphere_views
 from ..wavelet.exr import write_subbands
 from ..workspace import StageRun, Workspace, atomic_write_json
-from .shared import CKPT, VIEWS, background_for
+from .shared import VIEWS, background_for, coarse_members, ensemble_repair
 
 
 def contact_sheet(rows: list[tuple[torch.Tensor, torch.Tensor]]) -> np.ndarray:
@@ -46,7 +45,7 @@ def repair_views(run: StageRun, ws: Workspace, scene, cfg: RepairConfig, device:
     import time
 
     t0 = time.perf_counter()
-    splats, _ = load_checkpoint(ws.stage_dir("coarse") / CKPT, scene.norm, device)
+    members = coarse_members(ws, scene, device)
     repair_fn, U, d_cfg = load_repairer(ws.stage_dir("finetune"), cfg, device, seed)
     domain = d_cfg.get("domain", "wavelet")
     if cfg.poses == "sphere":
@@ -59,8 +58,7 @@ def repair_views(run: StageRun, ws: Workspace, scene, cfg: RepairConfig, device:
     listing, rows = [], []
     d_max = max(d for _, d in views)
     for frame, dist in views:
-        render, _ = render_frame(splats, frame, device, bg)
-        fixed, bands_in, bands_out = repair_image(render, repair_fn, U, domain, device, d_cfg.get("levels", 1))
+        render, fixed, bands_in, bands_out = ensemble_repair(members, frame, bg, repair_fn, U, d_cfg, device)
         stem = frame.name.rsplit(".", 1)[0]
         write_subbands(run.path("corrupted", f"{stem}.exr"), bands_in)
         write_subbands(run.path("repaired", f"{stem}.exr"), bands_out)
@@ -72,5 +70,5 @@ def repair_views(run: StageRun, ws: Workspace, scene, cfg: RepairConfig, device:
                         "weight": min(1.0, 2.0 * dist / d_max) if d_max > 0 else 1.0})
     write_png(run.path("contact_sheet.png"), contact_sheet(rows))
     atomic_write_json(run.path(VIEWS), {"domain": domain, "used_u": U is not None, "views": listing})
-    return {"num_views": len(listing), "domain": domain, "used_u": U is not None,
+    return {"num_views": len(listing), "domain": domain, "used_u": U is not None, "ensemble": len(members),
             "seconds": round(time.perf_counter() - t0, 2)}

@@ -6,15 +6,15 @@ import dataclasses
 
 import torch
 
-from ..config import FineConfig, RepairConfig, as_dict
+from ..config import FineConfig, as_dict
 from ..curves import CURVE, test_probe, write_curve
 from ..gaussians.splats import VIEWER_SH_DEGREE, export_ply, load_checkpoint, save_checkpoint, to_world
-from ..gaussians.trainer import PseudoViews, render_frame, train_gaussians
+from ..gaussians.trainer import PseudoViews, train_gaussians
 from ..progress import log
 from ..scene.dataset import Frame, load_prepared
 from ..wavelet.exr import read_subbands
 from ..workspace import Workspace, read_json
-from .shared import CKPT, PLY, VIEWS, background_for
+from .shared import CKPT, PLY, VIEWS, background_for, ensemble_repair, workspace_repairer
 
 
 def pseudo_schedule(cfg: FineConfig):
@@ -45,18 +45,9 @@ def repaired_again(ws: Workspace, splats, frames: list[Frame], background: torch
                    seed: int) -> list[Frame]:
     """The pseudo frames with images rendered from `splats` and repaired by this workspace's D and U
     (the repair stage's settings): the next round's pseudo references."""
-    from ..models.repair import load_repairer, repair_image
-
-    manifest = ws.manifest("repair") or {}
-    rcfg = RepairConfig(**{k: v for k, v in (manifest.get("config") or {}).items()
-                           if k in RepairConfig.__dataclass_fields__})
-    repair_fn, U, d_cfg = load_repairer(ws.stage_dir("finetune"), rcfg, device, seed)
-    out = []
-    for f in frames:
-        render, _ = render_frame(splats, f, device, background)
-        fixed, _, _ = repair_image(render, repair_fn, U, d_cfg.get("domain", "wavelet"), device, d_cfg.get("levels", 1))
-        out.append(Frame(f.name, f.K, f.viewmat, f.width, f.height, fixed))
-    return out
+    repair_fn, U, d_cfg = workspace_repairer(ws, device, seed)
+    return [Frame(f.name, f.K, f.viewmat, f.width, f.height,
+                  ensemble_repair([splats], f, background, repair_fn, U, d_cfg, device)[1]) for f in frames]
 
 
 def lpips_for_training(cfg: FineConfig, device: torch.device):

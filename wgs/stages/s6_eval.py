@@ -24,7 +24,7 @@ from ..scene.dataset import composite, load_prepared
 from ..scene.images import write_gif, write_png
 from ..scene.orbit import orbit_frames
 from ..workspace import STAGE_DIRS, StageRun, Workspace, atomic_write_bytes, atomic_write_json
-from .shared import CKPT, background_for, initial_splats
+from .shared import CKPT, background_for, coarse_members, ensemble_repair, initial_splats, workspace_repairer
 
 METRICS_DOC = {
     "psnr": "mean over views of per-view PSNR (dB), images in [0, 1] on the dataset background",
@@ -54,29 +54,23 @@ def evaluate_model(splats, frames, device, bg, lpips_fn, out_dir=None, desc="eva
     return per
 
 
-def measure_repair_gain(ws: Workspace, splats, frames, device, bg, seed: int) -> dict[str, Any]:
-    """PSNR of G_c's render and of its repair (D + U, as `wgs repair` runs them) against the truth
-    at the test poses: how much the repair itself fixes, before any 3D training on it."""
-    from ..config import RepairConfig
-    from ..models.repair import load_repairer, repair_image
-
-    rep_manifest = ws.manifest("repair") or {}
-    rcfg = RepairConfig(**{k: v for k, v in (rep_manifest.get("config") or {}).items()
-                           if k in RepairConfig.__dataclass_fields__})
-    repair_fn, U, d_cfg = load_repairer(ws.stage_dir("finetune"), rcfg, device, seed)
+def measure_repair_gain(ws: Workspace, members, frames, device, bg, seed: int) -> dict[str, Any]:
+    """PSNR of G_c's render and of the pseudo reference `wgs repair` makes at the same camera (the
+    ensemble's renders repaired by D + U, averaged) against the truth at the test poses: how much
+    the repair itself fixes, before any 3D training on it."""
+    repair_fn, U, d_cfg = workspace_repairer(ws, device, seed)
     before, after = {}, {}
     with progress_bar("eval repair gain", len(frames)) as prog:
         for i, f in enumerate(frames):
-            rgb, _ = render_frame(splats, f, device, bg)
-            fixed, _, _ = repair_image(rgb, repair_fn, U, d_cfg.get("domain", "wavelet"), device,
-                                       d_cfg.get("levels", 1))
+            rgb, fixed, _, _ = ensemble_repair(members, f, bg, repair_fn, U, d_cfg, device)
             ref = composite(f.image, f.mask, bg)
             before[f.name], after[f.name] = psnr(rgb, ref), psnr(fixed, ref)
             prog.update(0, completed=i + 1)
     gains = [after[k] - before[k] for k in before]
     return {"psnr_render": statistics.fmean(before.values()), "psnr_repaired": statistics.fmean(after.values()),
             "gain_db": statistics.fmean(gains), "gain_std": statistics.pstdev(gains),
-            "views_improved": sum(g > 0 for g in gains), "num_views": len(gains), "prior": d_cfg.get("prior")}
+            "views_improved": sum(g > 0 for g in gains), "num_views": len(gains), "prior": d_cfg.get("prior"),
+            "ensemble": len(members)}
 
 
 def summarise(per: dict[str, dict[str, float]]) -> dict[str, float | None]:
@@ -268,7 +262,7 @@ def run_eval(ws: Workspace, cfg: EvalConfig, device: torch.device, force: bool =
                 results[key] = {**summarise(per), "num_gaussians": int(splats["means"].shape[0]),
                                 "num_views": len(frames)}
                 if key == "coarse" and cfg.repair_gain and final == "fine" and ws.manifest("finetune"):
-                    gain = measure_repair_gain(ws, splats, frames, device, bg, seed)
+                    gain = measure_repair_gain(ws, coarse_members(ws, scene, device), frames, device, bg, seed)
             if cfg.baseline:
                 b_splats, b_record = train_baseline(run, ws, scene, stage_times(ws), device, seed)
                 per = evaluate_model(b_splats, frames, device, bg, lpips_fn, desc="eval baseline")

@@ -6,17 +6,20 @@ from __future__ import annotations
 
 import torch
 
-from ..config import TrainConfig
+from ..config import RepairConfig, TrainConfig
 from ..errors import InputError
 from ..gaussians.init import knn_mean_distance, random_init, visual_hull
-from ..gaussians.splats import Splats, create_splats
+from ..gaussians.splats import Splats, create_splats, load_checkpoint
+from ..gaussians.trainer import render_frame
+from ..models.repair import RepairFn, load_repairer, repair_image
 from ..progress import log
-from ..scene.dataset import PreparedScene
+from ..scene.dataset import Frame, PreparedScene
 from ..wavelet.haar import dwt2
 
 VIEWS = "views.json"  # 4_repair: the pseudo views' cameras and weights
 CKPT = "ckpt.pt"
 PLY = "point_cloud.ply"
+MEMBERS = "members"  # 1_coarse: the ensemble's other coarse models, members/ckpt_<i>.pt (i >= 1)
 
 
 def initial_splats(scene: PreparedScene, cfg: TrainConfig, seed: int) -> Splats:
@@ -48,3 +51,46 @@ def subbands_hwc(img: torch.Tensor) -> dict[str, object]:
 def newest_model(ws) -> str:
     """The stage whose model a command shows by default: fine when it has run, else coarse."""
     return "fine" if ws.manifest("fine") is not None else "coarse"
+
+
+def member_checkpoint(i: int) -> str:
+    """Path of ensemble member i (>= 1) inside the coarse stage's folder; member 0 is G_c (CKPT)."""
+    return f"{MEMBERS}/ckpt_{i}.pt"
+
+
+def coarse_members(ws, scene: PreparedScene, device: torch.device) -> list[Splats]:
+    """G_c and the coarse stage's other ensemble members (as many as it trained)."""
+    d = ws.stage_dir("coarse")
+    n = int((ws.manifest("coarse") or {}).get("ensemble", 1))
+    return [load_checkpoint(d / (CKPT if i == 0 else member_checkpoint(i)), scene.norm, device)[0]
+            for i in range(n)]
+
+
+def workspace_repairer(ws, device: torch.device, seed: int) -> tuple[RepairFn, torch.nn.Module | None, dict]:
+    """D's repair function, U and D's config from the finetune stage, with the repair stage's settings."""
+    manifest = ws.manifest("repair") or {}
+    rcfg = RepairConfig(**{k: v for k, v in (manifest.get("config") or {}).items()
+                           if k in RepairConfig.__dataclass_fields__})
+    return load_repairer(ws.stage_dir("finetune"), rcfg, device, seed)
+
+
+@torch.no_grad()
+def ensemble_repair(members: list[Splats], frame: Frame, background: torch.Tensor, repair_fn: RepairFn,
+                    U: torch.nn.Module | None, d_cfg: dict, device: torch.device
+                    ) -> tuple[torch.Tensor, torch.Tensor, dict, dict]:
+    """The pseudo reference at one camera: every member's render repaired by D and U, averaged.
+
+    Returns the first member's render [H, W, 3], the reference [H, W, 3], and the corrupted
+    (first render) and repaired (reference) subbands as `repair_image` names them."""
+    domain, levels = d_cfg.get("domain", "wavelet"), d_cfg.get("levels", 1)
+    fixed = []
+    for k, splats in enumerate(members):
+        render, _ = render_frame(splats, frame, device, background)
+        out, bands_in_k, bands_out = repair_image(render, repair_fn, U, domain, device, levels)
+        if k == 0:
+            first, bands_in = render, bands_in_k
+        fixed.append(out)
+    if len(fixed) == 1:
+        return first, fixed[0], bands_in, bands_out
+    mean = torch.stack(fixed).mean(0)
+    return first, mean, bands_in, (subbands_hwc(mean) if domain == "wavelet" else {"RGB": mean.numpy()})
