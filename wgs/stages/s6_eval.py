@@ -211,7 +211,9 @@ def train_baseline(run: StageRun, ws: Workspace, scene, times: list[dict[str, An
     base = CoarseConfig(**{k: v for k, v in ((ws.manifest("coarse") or {}).get("config") or {}).items()
                            if k in CoarseConfig.__dataclass_fields__})
     budget = sum(r["wall_time_s"] for r in times if r["stage"] != "scene")
-    coarse_s = next((r["wall_time_s"] for r in times if r["stage"] == "coarse"), budget)
+    # G_c's own training time (the coarse stage also trains the ensemble's other members)
+    coarse_s = (ws.manifest("coarse") or {}).get("train_seconds") or next(
+        (r["wall_time_s"] for r in times if r["stage"] == "coarse"), budget)
     scale = max(1.0, budget / max(coarse_s, 1e-6))
     # the time budget decides; iterations are an upper bound and the schedules follow elapsed time
     cfg = dataclasses.replace(base, iterations=int(base.iterations * scale * 2), max_seconds=budget,
