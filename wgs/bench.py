@@ -158,7 +158,7 @@ def timed_coarse_runs(prepared: Path, root: Path, iterations: int, copies: int, 
     """`wgs coarse` for `iterations` on `copies` copies of a prepared workspace, started together;
     wall time of each. env: variables to set (None: unset) in the children."""
     cfg = root / "coarse.toml"
-    cfg.write_text(f"[coarse]\niterations = {iterations}\nrefine_stop = {iterations}\n")
+    cfg.write_text(f"[coarse]\niterations = {iterations}\nrefine_stop = {iterations}\nensemble = 1\n")
     procs = []
     for i in range(copies):
         ws = root / f"ws{i}"
