@@ -38,7 +38,7 @@ def test_coarse_writes_the_workspace_contract(blender_scene, tmp_path):
     # the stored LL of a reference is the DWT of that reference composited on white
     from wgs.scene.dataset import composite, load_prepared
 
-    sc = load_prepared(ws)
+    sc = load_prepared(ws.stage_dir("scene"))
     f = sc.train[0]
     ref_img = composite(f.image, f.mask, torch.ones(3))
     ll, _ = dwt2(ref_img.permute(2, 0, 1)[None], 1)

@@ -7,6 +7,7 @@ from conftest import expect_error
 from wgs.cli import cli
 from wgs.gaussians.splats import load_checkpoint
 from wgs.gaussians.trainer import render_frame
+from wgs.models.repair import Repairer
 from wgs.scene.dataset import load_prepared
 from wgs.stages.shared import CKPT, coarse_members, ensemble_repair, member_checkpoint
 from wgs.workspace import Workspace
@@ -26,7 +27,7 @@ def test_members_are_trained_from_other_seeds_and_averaged(blender_scene, tmp_pa
     invoke("-w", ws.root, "coarse", *TINY, "--ensemble", "3")
     d = ws.stage_dir("coarse")
     assert ws.manifest("coarse")["ensemble"] == 3 and len(ws.manifest("coarse")["member_seconds"]) == 2
-    scene = load_prepared(ws)
+    scene = load_prepared(ws.stage_dir("scene"))
     members = coarse_members(ws, scene, torch.device("cpu"))
     assert len(members) == 3
     g_c = load_checkpoint(d / CKPT, scene.norm)[0]
@@ -35,15 +36,15 @@ def test_members_are_trained_from_other_seeds_and_averaged(blender_scene, tmp_pa
     assert not torch.equal(m1["means"][:100], g_c["means"][:100])  # another seed, another model
 
     # with an identity repair the pseudo reference is the mean of the members' renders
-    bg, f = torch.ones(3), scene.train[0]
+    bg, f, identity = torch.ones(3), scene.train[0], Repairer(lambda x: x, None, {})
     renders = [render_frame(m, f, torch.device("cpu"), bg)[0] for m in members]
-    first, ref, bands_in, bands_out = ensemble_repair(members, f, bg, lambda x: x, None, {}, torch.device("cpu"))
+    first, ref, bands_in, bands_out = ensemble_repair(members, f, bg, identity, torch.device("cpu"))
     torch.testing.assert_close(first, renders[0])
     torch.testing.assert_close(ref, torch.stack(renders).mean(0), atol=1e-5, rtol=0)
     assert list(bands_out) == ["LL", "LH", "HL", "HH"]
     assert bands_in["LL"].shape == (f.height // 2, f.width // 2, 3)
     # one member: its own repair
-    _, alone, _, _ = ensemble_repair(members[:1], f, bg, lambda x: x, None, {}, torch.device("cpu"))
+    _, alone, _, _ = ensemble_repair(members[:1], f, bg, identity, torch.device("cpu"))
     torch.testing.assert_close(alone, renders[0], atol=1e-5, rtol=0)
 
 
@@ -53,7 +54,7 @@ def test_one_member_is_g_c_alone(blender_scene, tmp_path):
     invoke("-w", ws.root, "coarse", *TINY, "--ensemble", "1")
     assert ws.manifest("coarse")["ensemble"] == 1
     assert not (ws.stage_dir("coarse") / "members").exists()
-    assert len(coarse_members(ws, load_prepared(ws), torch.device("cpu"))) == 1
+    assert len(coarse_members(ws, load_prepared(ws.stage_dir("scene")), torch.device("cpu"))) == 1
 
 
 def test_ensemble_below_one_is_refused(blender_scene, tmp_path):

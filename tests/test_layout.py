@@ -25,3 +25,56 @@ def test_no_stage_imports_another_stage():
     for p in STAGES.glob("*.py"):
         siblings = imported_modules(p) & stage_modules - {p.stem}
         assert not siblings, f"{p.name} imports {sorted(siblings)}: move what they share to stages/shared.py"
+
+
+WGS = STAGES.parent
+
+
+def module_name(path: Path) -> str:
+    parts = list(path.relative_to(WGS.parent).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def imports_of(path: Path, modules: set[str]) -> set[str]:
+    """The wgs modules a file imports anywhere in it (function-level imports included)."""
+    name = module_name(path)
+    package = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            out.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = ".".join(package[: len(package) - node.level + 1]) if node.level else ""
+            full = ".".join(p for p in (base, node.module or "") if p)
+            out.add(full)
+            out.update(f"{full}.{a.name}" for a in node.names)
+    return (out & modules) - {name}
+
+
+def import_graph() -> dict[str, set[str]]:
+    files = {module_name(p): p for p in WGS.rglob("*.py")}
+    return {m: imports_of(p, set(files)) for m, p in files.items()}
+
+
+def test_lower_layers_know_no_workspace():
+    graph = import_graph()
+    lower = [m for m in graph if m.split(".")[1:2] in (["scene"], ["gaussians"], ["wavelet"], ["models"], ["io"])]
+    assert len(lower) > 20
+    for m in lower:
+        assert "wgs.workspace" not in graph[m], f"{m} imports wgs.workspace: take paths, use wgs.io"
+
+
+def test_no_import_cycle():
+    graph, state = import_graph(), {}
+
+    def visit(m: str, path: list[str]) -> None:
+        state[m] = "open"
+        for d in sorted(graph[m]):
+            assert state.get(d) != "open", "import cycle: " + " -> ".join(path[path.index(d):] + [d])
+            if d not in state:
+                visit(d, path + [d])
+        state[m] = "done"
+
+    for m in sorted(graph):
+        if m not in state:
+            visit(m, [m])

@@ -5,13 +5,14 @@ import pytest
 from click.testing import CliRunner
 
 from wgs.cli import cli
+from wgs.io import read_json
 from wgs.scene.colmap import project_point
 from wgs.scene.convention import Normalisation
 from wgs.scene.dataset import load_prepared
 from wgs.scene.formats import read_scene
 from wgs.scene.idr import decompose_projection
 from wgs.scene.images import downscale
-from wgs.workspace import Workspace, read_json
+from wgs.workspace import Workspace
 
 
 def prepare(scene, ws, *args):
@@ -22,7 +23,7 @@ def prepare(scene, ws, *args):
 
 def world_poses(ws: Workspace):
     """{view index in sorted order: w2c in the source's world} from the prepared model."""
-    sc = load_prepared(ws, load_test_images=True)
+    sc = load_prepared(ws.stage_dir("scene"), load_test_images=True)
     return sc, [sc.norm.w2c_from_normalised(f.viewmat.double().numpy()) for f in sc.train + sc.test]
 
 
@@ -49,7 +50,7 @@ def test_formats_round_trip(scene_formats, tmp_path, fmt):
 
 def test_projection_matches_pycolmap(blender_scene, tmp_path):
     ws = prepare(blender_scene, tmp_path / "ws")
-    sc = load_prepared(ws)
+    sc = load_prepared(ws.stage_dir("scene"))
     rng = np.random.default_rng(0)
     for f in sc.train:
         for X in rng.normal(scale=0.3, size=(5, 3)):
@@ -127,7 +128,7 @@ def test_colmap_distorted_is_undistorted(scene_formats, tmp_path):
                                                      height=cam.height, params=[fx, fy, cx, cy, 0.05, 0, 0, 0])
     rec.write_text(str(d / "sparse" / "0"))
     ws = prepare(d, tmp_path / "ws")
-    sc = load_prepared(ws)
+    sc = load_prepared(ws.stage_dir("scene"))
     f = sc.train[0]
     assert f.image.shape[:2] == (f.height, f.width) and f.mask is not None
     assert abs(f.width - 48) <= 4
@@ -143,6 +144,7 @@ def test_colmap_uses_images_k(scene_formats, tmp_path):
     for p in (d / "images").iterdir():
         write_png(d / "images_2" / p.name, np.full((24, 24, 3), 0.25, np.float32))  # recognisable
     ws = prepare(d, tmp_path / "ws", "--downscale", "2")
-    img = read_image(ws.stage_dir("scene") / "images" / load_prepared(ws).train[0].name)
+    first = load_prepared(ws.stage_dir("scene")).train[0]
+    img = read_image(ws.stage_dir("scene") / "images" / first.name)
     assert img.shape[:2] == (24, 24) and abs(float(img.mean()) - 0.25) < 0.01
-    assert abs(load_prepared(ws).train[0].K[0, 0].item() - 0.5 * read_scene(d).views[0].K[0, 0]) < 1e-4
+    assert abs(first.K[0, 0].item() - 0.5 * read_scene(d).views[0].K[0, 0]) < 1e-4

@@ -11,7 +11,8 @@ import time
 import pytest
 
 from wgs.errors import WorkspaceLocked
-from wgs.workspace import Workspace, atomic_path, atomic_write_bytes
+from wgs.io import atomic_path, atomic_write_bytes
+from wgs.workspace import Workspace
 
 
 def test_atomic_write_replaces(tmp_path):
@@ -38,7 +39,7 @@ def test_killed_write_keeps_old(tmp_path):
     atomic_write_bytes(p, b"old")
     code = textwrap.dedent(f"""
         import sys, time
-        from wgs.workspace import atomic_path
+        from wgs.io import atomic_path
         with atomic_path({str(p)!r}) as tmp:
             with open(tmp, "wb") as fh:
                 fh.write(b"x" * 1000)

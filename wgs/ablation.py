@@ -16,8 +16,9 @@ from pathlib import Path
 from typing import Any
 
 from .errors import InputError
+from .io import atomic_write_bytes, atomic_write_json, read_json
 from .progress import log
-from .workspace import STAGE_DIRS, Workspace, atomic_write_bytes, atomic_write_json, read_json
+from .workspace import STAGE_DIRS, Workspace
 
 
 @dataclass(frozen=True)

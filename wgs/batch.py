@@ -27,9 +27,10 @@ from typing import Any
 import click
 
 from .errors import InputError
+from .io import atomic_write_bytes, atomic_write_json
 from .progress import log
 from .threads import COUNT_VARS, ENV, available_cores
-from .workspace import STAGE_DIRS, atomic_write_bytes, atomic_write_json
+from .workspace import STAGE_DIRS
 
 BATCH_DIR = "_batch"
 DONE = "batch_done.json"

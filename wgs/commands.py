@@ -313,9 +313,9 @@ def register(cli, stage_common, workspace_option) -> None:
     def export(obj, stage, fmt, output):
         """Write the model for other viewers and tools (world coordinates of the input scene)."""
         from .gaussians.splats import SPLAT_ROW, VIEWER_SH_DEGREE, export_ply, load_checkpoint, splat_bytes
+        from .io import atomic_write_bytes
         from .progress import results
         from .viewer import model_path
-        from .workspace import atomic_write_bytes
 
         ws = obj.ws()
         stage, ckpt = model_path(ws, stage)

@@ -9,9 +9,10 @@ from typing import Any
 import torch
 
 from .gaussians.trainer import Probe, TrainResult, render_frame
+from .io import atomic_write_json, read_json
 from .metrics import psnr, ssim
 from .scene.dataset import PreparedScene, composite, load_frame_images
-from .workspace import Workspace, atomic_write_json, read_json
+from .workspace import Workspace
 
 CURVE = "curve.json"
 
@@ -35,7 +36,7 @@ def test_probe(ws: Workspace, scene: PreparedScene, cfg, background: torch.Tenso
     ids = probe_views([f.name for f in scene.test], k) if every_s > 0 else []
     if not ids:
         return None, []
-    frames = load_frame_images(ws, [scene.test[i] for i in ids])
+    frames = load_frame_images(ws.stage_dir("scene"), [scene.test[i] for i in ids])
     refs = [composite(f.image, f.mask, background) for f in frames]
 
     def fn(splats) -> dict[str, float]:

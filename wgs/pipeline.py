@@ -12,8 +12,9 @@ from typing import Any
 
 import torch
 
+from .io import read_json
 from .progress import log, results
-from .workspace import Workspace, read_json
+from .workspace import Workspace
 
 MANY_VIEWS = 12  # from this many training views on, diffusion repair is left out by default
 REPAIR_STAGES = ("mask_data", "finetune", "repair", "fine")

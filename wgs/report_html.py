@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from .workspace import atomic_write_bytes
+from .io import atomic_write_bytes
 
 STYLE = """body{font:14px system-ui,sans-serif;margin:2em auto;max-width:1100px;color:#222}
 table{border-collapse:collapse;margin:1em 0}td,th{border:1px solid #ccc;padding:3px 8px;text-align:right}

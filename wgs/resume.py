@@ -23,6 +23,7 @@ from typing import Any
 import torch
 
 from .errors import WgsError
+from .io import atomic_write_bytes
 
 
 class Interrupted(WgsError):
@@ -52,8 +53,6 @@ class Checkpointer:
         return time.monotonic() - self._last >= self.every_s
 
     def save(self, state: dict[str, Any]) -> None:
-        from .workspace import atomic_write_bytes
-
         buf = io.BytesIO()
         torch.save(state, buf)
         atomic_write_bytes(self.path, buf.getvalue())

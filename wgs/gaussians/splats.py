@@ -17,8 +17,8 @@ import numpy as np
 import torch
 
 from ..errors import InputError
+from ..io import atomic_write_bytes
 from ..scene.convention import Normalisation
-from ..workspace import atomic_write_bytes
 from .sh import num_sh_bases, rgb_to_sh0
 
 Splats = dict[str, torch.Tensor]

@@ -16,7 +16,7 @@ from typing import Any
 import torch
 
 from ..errors import InputError, WgsError
-from ..workspace import atomic_path, atomic_write_json
+from ..io import atomic_path, atomic_write_json
 
 PROMPT = "a photo of xxy5syt00"  # a rare token, as GaussianObject
 SD_FILES = ("model_index.json", "unet/config.json", "vae/config.json", "text_encoder/config.json",

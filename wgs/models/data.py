@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import torch
 
 from ..errors import InputError
+from ..io import read_json
 from ..wavelet.haar import dwt2
-from ..workspace import Workspace, read_json
 
 
 def value_range(domain: str, levels: int = 1) -> tuple[float, float]:
@@ -31,14 +33,14 @@ def hwc(a) -> torch.Tensor:
     return torch.from_numpy(a).permute(2, 0, 1).contiguous()
 
 
-def load_pairs(ws: Workspace, domain: str, levels: int = 1) -> tuple[torch.Tensor, torch.Tensor, list[dict]]:
+def load_pairs(folder: Path, domain: str, levels: int = 1) -> tuple[torch.Tensor, torch.Tensor, list[dict]]:
     """Clean and corrupted images of every pair, [P, 3, h, w] each, in model space ([-1, 1]).
 
     wavelet: the LL subband at `levels` (level 1 from the stored LL pairs, deeper levels from the
-    stored RGB pairs); rgb: the images."""
+    stored RGB pairs); rgb: the images. `folder`: what `wgs mask-data` wrote (index.json, pairs/)."""
     from ..wavelet.exr import read_subbands  # OpenImageIO only where pair files are read
 
-    index_path = ws.stage_dir("mask_data") / "index.json"
+    index_path = folder / "index.json"
     index = read_json(index_path)
     pairs = index.get("pairs", [])
     if not pairs:
@@ -47,9 +49,9 @@ def load_pairs(ws: Workspace, domain: str, levels: int = 1) -> tuple[torch.Tenso
     key, clean_band, bad_band = ("ll", "LL", "cLL") if domain == "wavelet" and not deep else ("rgb", "RGB", "cRGB")
     clean, bad = [], []
     for p in pairs:
-        bands = read_subbands(ws.stage_dir("mask_data") / p[key])
+        bands = read_subbands(folder / p[key])
         if clean_band not in bands or bad_band not in bands:
-            raise InputError(f"pair file lacks {clean_band}/{bad_band}", ws.stage_dir("mask_data") / p[key])
+            raise InputError(f"pair file lacks {clean_band}/{bad_band}", folder / p[key])
         clean.append(hwc(bands[clean_band]))
         bad.append(hwc(bands[bad_band]))
     c, b = torch.stack(clean), torch.stack(bad)

@@ -4,6 +4,7 @@ subbands, inverse DWT. Shared by `wgs repair` (pseudo references) and `wgs eval`
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +23,50 @@ def chw_to_hwc(x: torch.Tensor) -> np.ndarray:
 
 
 RepairFn = Callable[[torch.Tensor], torch.Tensor]  # [B, 3, h, w] model space -> repaired, model space
+
+
+# the square's symmetries as (transpose, flip rows, flip columns)
+SYMMETRIES = ((False, False, False), (False, False, True), (False, True, False), (True, False, False),
+              (False, True, True), (True, False, True), (True, True, False), (True, True, True))
+
+
+def _apply_symmetry(x: torch.Tensor, sym: tuple[bool, bool, bool], inverse: bool = False) -> torch.Tensor:
+    transpose, rows, cols = sym
+    dims = [d for d, on in ((-2, rows), (-1, cols)) if on]
+    if not inverse and transpose:
+        x = x.transpose(-2, -1)
+    x = x.flip(dims) if dims else x
+    return x.transpose(-2, -1) if inverse and transpose else x
+
+
+def symmetrized(fn: RepairFn, n: int, first: int = 0) -> RepairFn:
+    """fn averaged over n (1..8) symmetries of the square (flips, transposes) of its input, taken
+    cyclically from SYMMETRIES[first].
+
+    A small D is not equivariant to them, so its errors differ between them while the object does
+    not; an ensemble gives each member its own (`first`), which costs nothing."""
+    if not 1 <= n <= len(SYMMETRIES):
+        raise ValueError(f"symmetries must be 1..{len(SYMMETRIES)}, got {n}")
+    syms = [SYMMETRIES[(first + i) % len(SYMMETRIES)] for i in range(n)]
+    if syms == [SYMMETRIES[0]]:
+        return fn
+
+    def averaged(x: torch.Tensor) -> torch.Tensor:
+        outs = [_apply_symmetry(fn(_apply_symmetry(x, s)), s, inverse=True) for s in syms]
+        return torch.stack(outs).mean(0)
+
+    return averaged
+
+
+@dataclass(frozen=True)
+class Repairer:
+    """What repairs a render: D's function (model space), U (or None), D's config, and under how many
+    of the square's symmetries each render is repaired (RepairConfig.symmetries)."""
+
+    fn: RepairFn
+    U: torch.nn.Module | None
+    d_cfg: dict
+    symmetries: int = 1
 
 
 def embedded_repairer(D: torch.nn.Module, cfg: RepairConfig, d_cfg: dict, gen: torch.Generator,
@@ -77,8 +122,7 @@ def repair_image(render: torch.Tensor, repair_fn: RepairFn, U: torch.nn.Module |
     return out[0].permute(1, 2, 0).clamp(0, 1).float(), bands_in, bands_out
 
 
-def load_repairer(folder: Path, cfg: RepairConfig, device: torch.device, seed: int
-                  ) -> tuple[RepairFn, torch.nn.Module | None, dict]:
+def load_repairer(folder: Path, cfg: RepairConfig, device: torch.device, seed: int) -> Repairer:
     """D's repair function, U (or None) and D's config from a finetune folder (D/ or D_lora/, U/)."""
     gen = torch.Generator().manual_seed(seed)
     if (folder / "D_lora").is_dir():
@@ -91,4 +135,4 @@ def load_repairer(folder: Path, cfg: RepairConfig, device: torch.device, seed: i
         repair_fn = embedded_repairer(D, cfg, d_cfg, gen, device)
     u_dir = folder / "U"
     U = load_model(u_dir, device)[0] if (d_cfg.get("domain", "wavelet") == "wavelet" and u_dir.is_dir()) else None
-    return repair_fn, U, d_cfg
+    return Repairer(repair_fn, U, d_cfg, cfg.symmetries)

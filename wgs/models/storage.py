@@ -10,7 +10,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
 from ..errors import InputError
-from ..workspace import atomic_path, atomic_write_json
+from ..io import atomic_path, atomic_write_json
 from .hf_unet import HFUNet, HFUNetConfig
 from .ll_denoiser import LLDenoiser, LLDenoiserConfig
 

@@ -41,7 +41,7 @@ def object_pairs(scene_dir: Path, work: Path, views: int, coarse_overrides: dict
     t0 = time.perf_counter()
     run_prepare(ws, scene_dir, resolve("prepare", cli={"views": views}))
     run_coarse(ws, resolve("coarse", cli=coarse_overrides), torch.device("cpu"), seed)
-    scene = load_prepared(ws, load_test_images=True)
+    scene = load_prepared(ws.stage_dir("scene"), load_test_images=True)
     splats, _ = load_checkpoint(ws.stage_dir("coarse") / CKPT, scene.norm)
     bg = torch.ones(3)
     centres = torch.stack([f.center for f in scene.train])

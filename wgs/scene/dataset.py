@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 
 from ..errors import InputError
-from ..workspace import Workspace, read_json
+from ..io import read_json
 from .colmap import read_model
 from .convention import Normalisation
 from .images import read_image
@@ -50,9 +51,9 @@ class PreparedScene:
         return bool(self.info.get("has_masks"))
 
 
-def load_frame_images(ws: Workspace, frames: list[Frame]) -> list[Frame]:
-    """The frames with their image (and mask, when the scene has one) read from the prepared scene."""
-    sdir = ws.stage_dir("scene")
+def load_frame_images(sdir: Path, frames: list[Frame]) -> list[Frame]:
+    """The frames with their image (and mask, when the scene has one) read from the prepared scene
+    folder `sdir` (a workspace's scene/)."""
     for f in frames:
         f.image = torch.from_numpy(read_image(sdir / "images" / f.name)[..., :3].copy())
         mpath = sdir / "masks" / f.name
@@ -61,9 +62,9 @@ def load_frame_images(ws: Workspace, frames: list[Frame]) -> list[Frame]:
     return frames
 
 
-def load_prepared(ws: Workspace, load_test_images: bool = False) -> PreparedScene:
-    sdir = ws.stage_dir("scene")
-    if ws.manifest("scene") is None:
+def load_prepared(sdir: Path, load_test_images: bool = False) -> PreparedScene:
+    """The scene `wgs prepare` wrote to the folder `sdir` (a workspace's scene/)."""
+    if not (sdir / "scene.json").is_file():
         raise InputError("no prepared scene: run `wgs prepare SCENE -w WS` first", sdir)
     info = read_json(sdir / "scene.json")
     model = read_model(sdir / "sparse")
@@ -76,7 +77,7 @@ def load_prepared(ws: Workspace, load_test_images: bool = False) -> PreparedScen
             K, w2c, w, h = model[n]
             f = Frame(n, torch.tensor(K, dtype=torch.float32), torch.tensor(w2c, dtype=torch.float32), w, h)
             out.append(f)
-        return load_frame_images(ws, out) if with_images else out
+        return load_frame_images(sdir, out) if with_images else out
 
     return PreparedScene(info, Normalisation.from_json(info["normalisation"]),
                          frames(info["train_names"], True), frames(info["test_names"], load_test_images))

@@ -105,8 +105,7 @@ def novel_views(train: list[Frame], per_pair: int, lo: float = 0.3, hi: float = 
     return out
 
 
-def sphere_views(train: list[Frame], n: int, below_deg: float = 15.0, above_deg: float = 25.0
-                 ) -> list[tuple[Frame, float]]:
+def sphere_views(train: list[Frame], n: int, below_deg: float, above_deg: float) -> list[tuple[Frame, float]]:
     """n viewpoints spread evenly (Fibonacci lattice) over a band of the sphere around the object at
     the training cameras' mean distance, from `below_deg` under the lowest training camera to
     `above_deg` over the highest (elevation about the fitted up axis, within -80..85 degrees);

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..config import PrepareConfig
 from ..errors import InputError
-from ..workspace import StageRun, atomic_write_bytes, atomic_write_json
+from ..io import atomic_write_bytes, atomic_write_json
 from .colmap import undistort, write_model
 from .convention import normalisation_from_cameras, orthonormalise, rotation_error, scale_intrinsics
 from .formats import read_scene
@@ -110,7 +110,13 @@ def _load_view(v: View, cfg: PrepareConfig, root: Path) -> tuple[np.ndarray, np.
     return rgb, mask, K
 
 
-def prepare(scene: RawScene, cfg: PrepareConfig, run: StageRun) -> dict[str, Any]:
+def _at(out: Path, *parts: str) -> Path:
+    p = out.joinpath(*parts)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    return p
+
+
+def prepare(scene: RawScene, cfg: PrepareConfig, out: Path) -> dict[str, Any]:
     """Write the workspace scene folder for `scene` into the stage's staging folder."""
     ids = {"train": scene.train, "test": scene.test}
     norm = normalisation_from_cameras([scene.views[i].w2c for i in scene.train])
@@ -125,9 +131,9 @@ def prepare(scene: RawScene, cfg: PrepareConfig, run: StageRun) -> dict[str, Any
             if name in used:
                 raise InputError(f"two images map to the same name {name}", v.image)
             used.add(name)
-            write_png(run.path("images", name), rgb)
+            write_png(_at(out, "images", name), rgb)
             if mask is not None:
-                write_png(run.path("masks", name), mask)
+                write_png(_at(out, "masks", name), mask)
             has_mask[name] = mask is not None
             names.append(name)
             Ks.append(K)
@@ -139,9 +145,9 @@ def prepare(scene: RawScene, cfg: PrepareConfig, run: StageRun) -> dict[str, Any
     if any(masked) and not all(masked):
         missing = train_names[masked.index(False)]
         raise InputError(f"some training views have masks but {missing} has none", scene.root)
-    write_model(run.path("sparse", "cameras.txt").parent, names, Ks, w2cs, sizes)
-    atomic_write_bytes(run.path("split_train.txt"), ("\n".join(train_names) + "\n").encode())
-    atomic_write_bytes(run.path("split_test.txt"), ("\n".join(test_names) + "\n").encode() if test_names else b"")
+    write_model(_at(out, "sparse", "cameras.txt").parent, names, Ks, w2cs, sizes)
+    atomic_write_bytes(_at(out, "split_train.txt"), ("\n".join(train_names) + "\n").encode())
+    atomic_write_bytes(_at(out, "split_test.txt"), ("\n".join(test_names) + "\n").encode() if test_names else b"")
     res = sorted(set(sizes))
     info = {
         "format": scene.format,
@@ -156,5 +162,5 @@ def prepare(scene: RawScene, cfg: PrepareConfig, run: StageRun) -> dict[str, Any
         "normalisation": norm.to_json(),
         "notes": scene.notes,
     }
-    atomic_write_json(run.path("scene.json"), info)
+    atomic_write_json(_at(out, "scene.json"), info)
     return info

@@ -22,7 +22,7 @@ def run_render(ws: Workspace, stage: str, views: str, n_frames: int, device: tor
     src, ckpt = STAGE_CKPT[stage]
     if ws.manifest(src) is None:
         raise InputError(f"stage '{stage}' has not run yet", ws.stage_dir(src))
-    scene = load_prepared(ws)
+    scene = load_prepared(ws.stage_dir("scene"))
     splats, _ = load_checkpoint(ws.stage_dir(src) / ckpt, scene.norm, device)
     frames = {"train": scene.train, "test": scene.test, "path": orbit_frames(scene.train, n_frames)}[views]
     out = ws.root / "renders" / f"{stage}_{views}"

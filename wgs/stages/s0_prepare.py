@@ -7,12 +7,13 @@ from pathlib import Path
 
 from ..config import PrepareConfig, as_dict
 from ..errors import InputError
+from ..io import atomic_write_bytes, atomic_write_json, read_json
 from ..progress import log
 from ..scene.formats import detect_format
 from ..scene.prepare import load_scene_for_prepare, prepare, scene_inputs_digest
 from ..scene.sfm import find_photos, pose_photos
 from ..threads import thread_count
-from ..workspace import Workspace, atomic_write_bytes, atomic_write_json, read_json
+from ..workspace import Workspace
 
 SFM_DIR = "sfm"
 SFM_INPUTS = "inputs.sha256"
@@ -70,7 +71,7 @@ def run_prepare(ws: Workspace, scene_dir: Path, cfg: PrepareConfig, force: bool 
             log(f"  note: {note}")
         log(f"prepare: {scene.format} scene, {len(scene.train)} training + {len(scene.test)} test views")
         with ws.stage_run("scene", config, fp) as run:
-            info = prepare(scene, cfg, run)
+            info = prepare(scene, cfg, run.dir)
             run.record["summary"] = {
                 "source": info["source"], "format": info["format"], "num_train": len(info["train_names"]),
                 "num_test": len(info["test_names"]), "resolution": info["resolution"],

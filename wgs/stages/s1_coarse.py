@@ -10,12 +10,13 @@ from ..config import CoarseConfig, as_dict
 from ..curves import CURVE, test_probe, write_curve
 from ..gaussians.splats import VIEWER_SH_DEGREE, Splats, export_ply, save_checkpoint, to_world
 from ..gaussians.trainer import render_frame, train_gaussians
+from ..io import atomic_write_json
 from ..metrics import psnr
 from ..progress import log
 from ..scene.dataset import PreparedScene, composite, load_prepared
 from ..scene.images import write_png
 from ..wavelet.exr import write_subbands
-from ..workspace import StageRun, Workspace, atomic_write_json
+from ..workspace import StageRun, Workspace
 from .shared import CKPT, PLY, background_for, initial_splats, member_checkpoint, subbands_hwc
 
 
@@ -39,7 +40,7 @@ def run_coarse(ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: int
         fp = ws.begin("coarse", config, {"seed": seed}, force)
         if fp is None:
             return False
-        scene = load_prepared(ws)
+        scene = load_prepared(ws.stage_dir("scene"))
         torch.manual_seed(seed)
         splats = initial_splats(scene, cfg, seed)
         log(f"coarse: {splats['means'].shape[0]} initial Gaussians, {len(scene.train)} views, "

@@ -19,11 +19,12 @@ from ..config import MaskDataConfig, as_dict
 from ..errors import InputError
 from ..gaussians.splats import Splats
 from ..gaussians.trainer import render_frame, train_gaussians
+from ..io import atomic_write_json, read_json
 from ..masking import make_region_masks
 from ..progress import log
 from ..scene.dataset import PreparedScene, composite, load_prepared
 from ..wavelet.exr import write_subbands
-from ..workspace import STAGE_DIRS, StageRun, Workspace, atomic_write_json, read_json
+from ..workspace import STAGE_DIRS, StageRun, Workspace
 from .shared import background_for, initial_splats, subbands_hwc
 
 INDEX = "index.json"
@@ -123,7 +124,7 @@ def run_mask_data(ws: Workspace, cfg: MaskDataConfig, device: torch.device, seed
         fp = ws.begin("mask_data", config, {"seed": seed}, force, requires=("coarse",))
         if fp is None:
             return False
-        scene = load_prepared(ws)
+        scene = load_prepared(ws.stage_dir("scene"))
         torch.manual_seed(seed)
         with ws.stage_run("mask_data", config, fp) as run:
             writer = PairWriter(run, scene, device, cfg.strategy)

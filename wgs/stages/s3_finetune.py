@@ -12,6 +12,7 @@ import torch
 
 from ..config import FinetuneConfig, as_dict
 from ..errors import InputError
+from ..io import atomic_write_json, read_json
 from ..metrics import psnr
 from ..models.data import hwc, load_pairs, random_crops
 from ..models.hf_unet import HFUNet, HFUNetConfig
@@ -26,7 +27,7 @@ from ..resume import Checkpointer, check_interrupt, deferred_sigint, rng_state, 
 from ..threads import adapt as adapt_threads
 from ..wavelet.exr import read_subbands
 from ..wavelet.haar import dwt2, idwt2, stack_highs
-from ..workspace import StageRun, Workspace, atomic_write_json, read_json
+from ..workspace import StageRun, Workspace
 
 
 def split_holdout(n: int, frac: float, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
@@ -289,7 +290,7 @@ def run_finetune(ws: Workspace, cfg: FinetuneConfig, device: torch.device, seed:
         torch.manual_seed(seed)
         if cfg.levels < 1:
             raise InputError(f"levels must be >= 1, got {cfg.levels}")
-        clean, bad, pairs = load_pairs(ws, cfg.domain, cfg.levels)
+        clean, bad, pairs = load_pairs(ws.stage_dir("mask_data"), cfg.domain, cfg.levels)
         train_ids, held = split_holdout(clean.shape[0], cfg.holdout, gen)
         with ws.stage_run("finetune", config, fp) as run:
             record = train_and_save(run, ws, cfg, clean, bad, train_ids, held, device, gen)

@@ -11,13 +11,14 @@ import numpy as np
 import torch
 
 from ..config import RepairConfig, as_dict
+from ..io import atomic_write_json
 from ..models.repair import load_repairer
 from ..progress import log
 from ..scene.dataset import load_prepared
 from ..scene.images import write_png
 from ..scene.orbit import novel_views, sphere_views
 from ..wavelet.exr import write_subbands
-from ..workspace import StageRun, Workspace, atomic_write_json
+from ..workspace import StageRun, Workspace
 from .shared import VIEWS, background_for, coarse_members, ensemble_repair
 
 
@@ -32,7 +33,7 @@ def run_repair(ws: Workspace, cfg: RepairConfig, device: torch.device, seed: int
         fp = ws.begin("repair", config, {"seed": seed}, force, requires=("finetune",))
         if fp is None:
             return False
-        scene = load_prepared(ws)
+        scene = load_prepared(ws.stage_dir("scene"))
         with ws.stage_run("repair", config, fp) as run:
             record = repair_views(run, ws, scene, cfg, device, seed)
             run.record.update(record)
@@ -46,10 +47,10 @@ def repair_views(run: StageRun, ws: Workspace, scene, cfg: RepairConfig, device:
 
     t0 = time.perf_counter()
     members = coarse_members(ws, scene, device)
-    repair_fn, U, d_cfg = load_repairer(ws.stage_dir("finetune"), cfg, device, seed)
-    domain = d_cfg.get("domain", "wavelet")
+    repairer = load_repairer(ws.stage_dir("finetune"), cfg, device, seed)
+    domain, U = repairer.d_cfg.get("domain", "wavelet"), repairer.U
     if cfg.poses == "sphere":
-        views = sphere_views(scene.train, cfg.num_views)
+        views = sphere_views(scene.train, cfg.num_views, cfg.band_below, cfg.band_above)
     else:
         n_pairs = max(1, len(scene.train))
         per_pair = max(1, round(cfg.views_per_train * len(scene.train) / n_pairs))
@@ -58,7 +59,7 @@ def repair_views(run: StageRun, ws: Workspace, scene, cfg: RepairConfig, device:
     listing, rows = [], []
     d_max = max(d for _, d in views)
     for frame, dist in views:
-        render, fixed, bands_in, bands_out = ensemble_repair(members, frame, bg, repair_fn, U, d_cfg, device)
+        render, fixed, bands_in, bands_out = ensemble_repair(members, frame, bg, repairer, device)
         stem = frame.name.rsplit(".", 1)[0]
         write_subbands(run.path("corrupted", f"{stem}.exr"), bands_in)
         write_subbands(run.path("repaired", f"{stem}.exr"), bands_out)

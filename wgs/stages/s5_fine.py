@@ -10,10 +10,11 @@ from ..config import FineConfig, as_dict
 from ..curves import CURVE, test_probe, write_curve
 from ..gaussians.splats import VIEWER_SH_DEGREE, export_ply, load_checkpoint, save_checkpoint, to_world
 from ..gaussians.trainer import PseudoViews, train_gaussians
+from ..io import read_json
 from ..progress import log
 from ..scene.dataset import Frame, load_prepared
 from ..wavelet.exr import read_subbands
-from ..workspace import Workspace, read_json
+from ..workspace import Workspace
 from .shared import CKPT, PLY, VIEWS, background_for, ensemble_repair, workspace_repairer
 
 
@@ -45,9 +46,9 @@ def repaired_again(ws: Workspace, splats, frames: list[Frame], background: torch
                    seed: int) -> list[Frame]:
     """The pseudo frames with images rendered from `splats` and repaired by this workspace's D and U
     (the repair stage's settings): the next round's pseudo references."""
-    repair_fn, U, d_cfg = workspace_repairer(ws, device, seed)
+    repairer = workspace_repairer(ws, device, seed)
     return [Frame(f.name, f.K, f.viewmat, f.width, f.height,
-                  ensemble_repair([splats], f, background, repair_fn, U, d_cfg, device)[1]) for f in frames]
+                  ensemble_repair([splats], f, background, repairer, device)[1]) for f in frames]
 
 
 def lpips_for_training(cfg: FineConfig, device: torch.device):
@@ -71,7 +72,7 @@ def run_fine(ws: Workspace, cfg: FineConfig, device: torch.device, seed: int, fo
         fp = ws.begin("fine", config, {"seed": seed}, force, requires=("repair",))
         if fp is None:
             return False
-        scene = load_prepared(ws)
+        scene = load_prepared(ws.stage_dir("scene"))
         splats, _ = load_checkpoint(ws.stage_dir("coarse") / CKPT, scene.norm)
         frames, weights = load_pseudo_views(ws)
         bg = background_for(scene)

@@ -17,13 +17,14 @@ from ..curves import CURVE, read_curve, test_probe, write_curve
 from ..errors import InputError
 from ..gaussians.splats import load_checkpoint, save_checkpoint
 from ..gaussians.trainer import render_frame, train_gaussians
+from ..io import atomic_write_bytes, atomic_write_json
 from ..lpips import LPIPS, LpipsUnavailable
 from ..metrics import psnr, ssim
 from ..progress import log, progress_bar
 from ..scene.dataset import composite, load_prepared
 from ..scene.images import write_gif, write_png
 from ..scene.orbit import orbit_frames
-from ..workspace import STAGE_DIRS, StageRun, Workspace, atomic_write_bytes, atomic_write_json
+from ..workspace import STAGE_DIRS, StageRun, Workspace
 from .shared import CKPT, background_for, coarse_members, ensemble_repair, initial_splats, workspace_repairer
 
 METRICS_DOC = {
@@ -58,18 +59,18 @@ def measure_repair_gain(ws: Workspace, members, frames, device, bg, seed: int) -
     """PSNR of G_c's render and of the pseudo reference `wgs repair` makes at the same camera (the
     ensemble's renders repaired by D + U, averaged) against the truth at the test poses: how much
     the repair itself fixes, before any 3D training on it."""
-    repair_fn, U, d_cfg = workspace_repairer(ws, device, seed)
+    repairer = workspace_repairer(ws, device, seed)
     before, after = {}, {}
     with progress_bar("eval repair gain", len(frames)) as prog:
         for i, f in enumerate(frames):
-            rgb, fixed, _, _ = ensemble_repair(members, f, bg, repair_fn, U, d_cfg, device)
+            rgb, fixed, _, _ = ensemble_repair(members, f, bg, repairer, device)
             ref = composite(f.image, f.mask, bg)
             before[f.name], after[f.name] = psnr(rgb, ref), psnr(fixed, ref)
             prog.update(0, completed=i + 1)
     gains = [after[k] - before[k] for k in before]
     return {"psnr_render": statistics.fmean(before.values()), "psnr_repaired": statistics.fmean(after.values()),
             "gain_db": statistics.fmean(gains), "gain_std": statistics.pstdev(gains),
-            "views_improved": sum(g > 0 for g in gains), "num_views": len(gains), "prior": d_cfg.get("prior"),
+            "views_improved": sum(g > 0 for g in gains), "num_views": len(gains), "prior": repairer.d_cfg.get("prior"),
             "ensemble": len(members)}
 
 
@@ -237,7 +238,7 @@ def run_eval(ws: Workspace, cfg: EvalConfig, device: torch.device, force: bool =
         fp = ws.begin("eval", config, {"final": final}, force, requires=("coarse", final))
         if fp is None:
             return False
-        scene = load_prepared(ws, load_test_images=True)
+        scene = load_prepared(ws.stage_dir("scene"), load_test_images=True)
         if not scene.test:
             raise InputError("the scene has no test views: nothing to evaluate", ws.stage_dir("scene"))
         frames = scene.test[: cfg.max_views] if cfg.max_views else scene.test

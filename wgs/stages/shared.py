@@ -11,7 +11,7 @@ from ..errors import InputError
 from ..gaussians.init import knn_mean_distance, random_init, visual_hull
 from ..gaussians.splats import Splats, create_splats, load_checkpoint
 from ..gaussians.trainer import render_frame
-from ..models.repair import RepairFn, load_repairer, repair_image
+from ..models.repair import Repairer, load_repairer, repair_image, symmetrized
 from ..progress import log
 from ..scene.dataset import Frame, PreparedScene
 from ..wavelet.haar import dwt2
@@ -66,8 +66,8 @@ def coarse_members(ws, scene: PreparedScene, device: torch.device) -> list[Splat
             for i in range(n)]
 
 
-def workspace_repairer(ws, device: torch.device, seed: int) -> tuple[RepairFn, torch.nn.Module | None, dict]:
-    """D's repair function, U and D's config from the finetune stage, with the repair stage's settings."""
+def workspace_repairer(ws, device: torch.device, seed: int) -> Repairer:
+    """D and U from the finetune stage, with the repair stage's settings."""
     manifest = ws.manifest("repair") or {}
     rcfg = RepairConfig(**{k: v for k, v in (manifest.get("config") or {}).items()
                            if k in RepairConfig.__dataclass_fields__})
@@ -75,18 +75,22 @@ def workspace_repairer(ws, device: torch.device, seed: int) -> tuple[RepairFn, t
 
 
 @torch.no_grad()
-def ensemble_repair(members: list[Splats], frame: Frame, background: torch.Tensor, repair_fn: RepairFn,
-                    U: torch.nn.Module | None, d_cfg: dict, device: torch.device
-                    ) -> tuple[torch.Tensor, torch.Tensor, dict, dict]:
+def ensemble_repair(members: list[Splats], frame: Frame, background: torch.Tensor, repairer: Repairer,
+                    device: torch.device) -> tuple[torch.Tensor, torch.Tensor, dict, dict]:
     """The pseudo reference at one camera: every member's render repaired by D and U, averaged.
 
+    Member k's D sees its render under its own symmetries of the square (k * n .. k * n + n - 1 for
+    n = repairer.symmetries): D's errors then differ between members too (lego, 4 views, 40 test
+    poses, 4 models: 20.57 dB with D on every render as it is, 20.63 with a flip or transpose each).
     Returns the first member's render [H, W, 3], the reference [H, W, 3], and the corrupted
     (first render) and repaired (reference) subbands as `repair_image` names them."""
-    domain, levels = d_cfg.get("domain", "wavelet"), d_cfg.get("levels", 1)
+    domain, levels = repairer.d_cfg.get("domain", "wavelet"), repairer.d_cfg.get("levels", 1)
+    n = repairer.symmetries
     fixed = []
     for k, splats in enumerate(members):
         render, _ = render_frame(splats, frame, device, background)
-        out, bands_in_k, bands_out = repair_image(render, repair_fn, U, domain, device, levels)
+        fn = symmetrized(repairer.fn, n, first=k * n)
+        out, bands_in_k, bands_out = repair_image(render, fn, repairer.U, domain, device, levels)
         if k == 0:
             first, bands_in = render, bands_in_k
         fixed.append(out)

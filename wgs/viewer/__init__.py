@@ -76,7 +76,7 @@ def site(ws, stage: str | None) -> dict[str, bytes | Path]:
     from ..scene.dataset import load_prepared
 
     stage, ckpt = model_path(ws, stage)
-    scene = load_prepared(ws)
+    scene = load_prepared(ws.stage_dir("scene"))
     splats, _ = load_checkpoint(ckpt, scene.norm)  # normalised world, like the cameras
     report = ws.stage_dir("eval") / "report.html"
     frame = viewer_frame([f.viewmat.double().numpy() for f in scene.train])

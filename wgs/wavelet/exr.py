@@ -13,8 +13,8 @@ import numpy as np
 import OpenImageIO as oiio
 
 from ..errors import InputError
+from ..io import atomic_path
 from ..scene.images import oiio_path
-from ..workspace import atomic_path
 
 HALF_MAX = 65504.0
 RGB = ("R", "G", "B")
