@@ -33,6 +33,7 @@ refine_start = 10
 refine_every = 10
 init_points = 800
 hull_resolution = 32
+ensemble = 2
 [mask_data]
 iterations = 30
 refine_start = 10
@@ -53,6 +54,7 @@ prior_steps = 4
 prior_eval_every = 2
 [repair]
 steps = 2
+num_views = 16
 [fine]
 iterations = 20
 refine_start = 5

@@ -76,7 +76,7 @@ def test_workspace_contract_and_results(tiny):
         assert all(math.isfinite(p["psnr"]) for p in curve["points"])
     assert "| coarse |" in report and "| fine |" in report
     views = json.loads((ws.root / "4_repair/views.json").read_text())
-    assert len(views["views"]) == 16 and views["used_u"] is True  # RepairConfig.num_views over the sphere
+    assert len(views["views"]) == 16 and views["used_u"] is True  # TINY's [repair] num_views over the sphere
     assert all(0 < v["weight"] <= 1 for v in views["views"])
 
 

@@ -5,11 +5,12 @@ from click.testing import CliRunner
 from conftest import expect_error
 
 from wgs.cli import cli
+from wgs.config import CKPT
 from wgs.gaussians.splats import load_checkpoint
 from wgs.gaussians.trainer import render_frame
 from wgs.models.repair import Repairer
 from wgs.scene.dataset import load_prepared
-from wgs.stages.shared import CKPT, coarse_members, ensemble_repair, member_checkpoint
+from wgs.stages.shared import coarse_members, ensemble_repair, member_checkpoint
 from wgs.workspace import Workspace
 
 TINY = ["--preset", "fast", "--iterations", "40"]

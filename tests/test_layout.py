@@ -78,3 +78,22 @@ def test_no_import_cycle():
     for m in sorted(graph):
         if m not in state:
             visit(m, [m])
+
+
+def test_the_stages_are_listed_once():
+    import re
+
+    from wgs.cli import cli
+    from wgs.config import METHOD, REGISTRY, STAGES
+    from wgs.workspace import COMMANDS, STAGE_DIRS, UPSTREAM
+
+    names = [s.name for s in REGISTRY]
+    assert list(STAGE_DIRS) == list(UPSTREAM) == list(COMMANDS) == names
+    assert list(STAGES) == [s.table for s in REGISTRY] and METHOD[-1] == "fine" and "eval" not in METHOD
+    for i, s in enumerate(REGISTRY):
+        assert set(s.upstream) <= set(names[:i]), f"{s.name} reads a stage that runs after it"
+        assert s.command in cli.commands
+    folders = re.compile("|".join(re.escape(f'"{s.folder}"') for s in REGISTRY if s.folder != s.name))
+    for p in WGS.rglob("*.py"):
+        if p.name != "config.py":
+            assert not folders.search(p.read_text()), f"{p.name} spells a stage folder: use STAGE_DIRS"

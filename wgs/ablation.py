@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from .config import METHOD, RESULTS, stages_through
 from .errors import InputError
 from .io import atomic_write_bytes, atomic_write_json, read_json
 from .progress import log
@@ -44,7 +45,6 @@ ROWS: dict[str, Row] = {r.name: r for r in (
 )}
 PAPER_ROWS = ("loo-rgb", "offline-rgb", "orm-rgb", "orm-wavelet", "orm-wavelet-u", "orm-wavelet-u-prior", "3dgs")
 TIME_OF = "orm-wavelet-u-prior"  # plain 3DGS gets the time of the full method (wgs all's default)
-STAGES_OF_METHOD = ("scene", "coarse", "mask_data", "finetune", "repair", "fine")
 
 
 def parse_rows(spec: str) -> list[Row]:
@@ -72,7 +72,7 @@ def copy_stages(src: Workspace, dst: Workspace, stages: tuple[str, ...]) -> None
 
 
 def row_times(ws: Workspace) -> dict[str, float]:
-    return {st: (ws.manifest(st) or {}).get("wall_time_s", 0.0) for st in STAGES_OF_METHOD if ws.manifest(st)}
+    return {st: (ws.manifest(st) or {}).get("wall_time_s", 0.0) for st in METHOD if ws.manifest(st)}
 
 
 def run_ablation(ctx, scene_dir: Path, root: Path, rows: list[Row], repeats: int, preset: str | None,
@@ -119,18 +119,18 @@ def run_ablation(ctx, scene_dir: Path, root: Path, rows: list[Row], repeats: int
             else:
                 if row.strategy not in masks:
                     mws = workspace(f"_mask_{row.strategy}")
-                    copy_stages(shared, mws, ("scene", "coarse"))
+                    copy_stages(shared, mws, stages_through("coarse"))
                     md = ctx.config("mask_data", preset, strategy=row.strategy)
                     run_mask_data(mws, md, device, seed)
                     masks[row.strategy] = mws
-                copy_stages(masks[row.strategy], ws, ("scene", "coarse", "mask_data"))
+                copy_stages(masks[row.strategy], ws, stages_through("mask_data"))
                 run_finetune(ws, ctx.config("finetune", preset, domain=row.domain, use_u=row.use_u,
                                             levels=row.levels, prior=row.prior), device, seed)
                 run_repair(ws, ctx.config("repair", preset), device, seed)
                 run_fine(ws, ctx.config("fine", preset), device, seed)
                 run_eval(ws, ctx.config("eval", preset), device, final="fine", seed=seed)
                 timings[row.name] = row_times(ws)
-            res = read_json(ws.stage_dir("eval") / "results.json")
+            res = read_json(ws.stage_dir("eval") / RESULTS)
             records.append({"row": row.name, "repeat": rep, "seed": seed, "psnr": res["psnr"], "ssim": res["ssim"],
                             "lpips": res["lpips"],
                             "repair_gain_db": (res.get("repair_gain") or {}).get("gain_db"),

@@ -20,8 +20,9 @@ from pathlib import Path
 
 import torch
 
+from .config import RESULTS
 from .gaussians.render import rasterize
-from .workspace import peak_memory_mb
+from .workspace import STAGE_DIRS, peak_memory_mb
 
 CASES = ((128, 10_000), (256, 50_000))
 
@@ -92,11 +93,11 @@ def bench_pipeline(scene: str, root: str, preset: str, views: int, downscale: in
     ws, ws_3dgs, ws_loo = base / "wgs", base / "3dgs", base / "loo"
     pre = ["--preset", preset]
     t_all = wgs_cli("-w", str(ws), "all", scene, "--views", str(views), "--downscale", str(downscale), *pre)
-    res = json.loads((ws / "6_eval" / "results.json").read_text())
+    res = json.loads((ws / STAGE_DIRS["eval"] / RESULTS).read_text())
     # plain 3DGS for the same time: same scene folder, coarse trainer with a time budget
     ws_3dgs.mkdir(parents=True)
-    shutil.copytree(ws / "scene", ws_3dgs / "scene")
-    coarse = json.loads((ws / "1_coarse" / "manifest.json").read_text())
+    shutil.copytree(ws / STAGE_DIRS["scene"], ws_3dgs / STAGE_DIRS["scene"])
+    coarse = json.loads((ws / STAGE_DIRS["coarse"] / "manifest.json").read_text())
     scale = t_all / coarse["train_seconds"] * 4  # generous: the time budget decides, schedules follow it
     its = int(coarse["iterations"] * scale)
     refine_stop = int(coarse["config"]["refine_stop"] * scale)
@@ -105,15 +106,15 @@ def bench_pipeline(scene: str, root: str, preset: str, views: int, downscale: in
                    "ensemble = 1\n")
     t_3dgs = wgs_cli("--config", str(cfg), "-w", str(ws_3dgs), "coarse", *pre)
     wgs_cli("-w", str(ws_3dgs), "eval", *pre)
-    res_3dgs = json.loads((ws_3dgs / "6_eval" / "results.json").read_text())
+    res_3dgs = json.loads((ws_3dgs / STAGE_DIRS["eval"] / RESULTS).read_text())
     # leave-one-out pairs on the same coarse model, timed right after ORM's (recorded by `wgs all`)
     ws_loo.mkdir(parents=True)
-    for d in ("scene", "1_coarse"):
+    for d in (STAGE_DIRS["scene"], STAGE_DIRS["coarse"]):
         shutil.copytree(ws / d, ws_loo / d)
     wgs_cli("-w", str(ws_loo), "mask-data", "--strategy", "loo", *pre)
-    orm = json.loads((ws / "2_mask_data" / "manifest.json").read_text())
-    loo = json.loads((ws_loo / "2_mask_data" / "manifest.json").read_text())
-    ft = json.loads((ws / "3_finetune" / "manifest.json").read_text())
+    orm = json.loads((ws / STAGE_DIRS["mask_data"] / "manifest.json").read_text())
+    loo = json.loads((ws_loo / STAGE_DIRS["mask_data"] / "manifest.json").read_text())
+    ft = json.loads((ws / STAGE_DIRS["finetune"] / "manifest.json").read_text())
     pick = ("psnr", "psnr_std", "ssim", "ssim_std", "lpips", "lpips_std", "num_gaussians", "num_views")
     return {
         "benchmark": "pipeline", "scene": scene, "preset": preset, "views": views, "downscale": downscale,

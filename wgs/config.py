@@ -185,9 +185,49 @@ class EvalConfig(LpipsWeightsConfig):
     baseline: bool = False
 
 
-STAGES: dict[str, type] = {"prepare": PrepareConfig, "coarse": CoarseConfig, "mask_data": MaskDataConfig,
-                           "finetune": FinetuneConfig, "repair": RepairConfig, "fine": FineConfig,
-                           "eval": EvalConfig}
+@dataclass(frozen=True)
+class Stage:
+    """One stage of the pipeline, the one place its facts live: `name` keys the workspace (manifests,
+    `Workspace.stage_dir`), `folder` is its folder in the workspace, `command` its `wgs` command,
+    `config` its settings (the [table] named like the command, '-' as '_'), `upstream` the stages
+    whose outputs it reads (their fingerprints make it stale), `method` False for what only measures."""
+
+    name: str
+    folder: str
+    command: str
+    config: type
+    upstream: tuple[str, ...]
+    method: bool = True
+
+    @property
+    def table(self) -> str:
+        return self.command.replace("-", "_")
+
+
+REGISTRY: tuple[Stage, ...] = (
+    Stage("scene", "scene", "prepare", PrepareConfig, ()),
+    Stage("coarse", "1_coarse", "coarse", CoarseConfig, ("scene",)),
+    Stage("mask_data", "2_mask_data", "mask-data", MaskDataConfig, ("scene", "coarse")),
+    Stage("finetune", "3_finetune", "finetune", FinetuneConfig, ("coarse", "mask_data")),
+    Stage("repair", "4_repair", "repair", RepairConfig, ("scene", "coarse", "finetune")),
+    Stage("fine", "5_fine", "fine", FineConfig, ("scene", "coarse", "finetune", "repair")),  # rounds repair again
+    Stage("eval", "6_eval", "eval", EvalConfig, ("scene", "coarse", "fine"), method=False),
+)
+STAGES: dict[str, type] = {s.table: s.config for s in REGISTRY}  # config table -> settings class
+METHOD: tuple[str, ...] = tuple(s.name for s in REGISTRY if s.method)  # what a reconstruction runs, in order
+
+# the output files that other stages and tools read, by the stage that writes them
+CKPT = "ckpt.pt"  # coarse, fine: the model (normalised world) and its iteration
+PLY = "point_cloud.ply"  # coarse, fine: the model in the INRIA layout, world coordinates
+MEMBERS = "members"  # coarse: the ensemble's other models, members/ckpt_<i>.pt (i >= 1)
+INDEX = "index.json"  # mask_data: the corrupted / clean pairs
+VIEWS = "views.json"  # repair: the pseudo views' cameras and weights
+RESULTS = "results.json"  # eval: metrics, times, the plain-3DGS baseline
+
+
+def stages_through(name: str) -> tuple[str, ...]:
+    """The method's stages up to and including `name`."""
+    return METHOD[: METHOD.index(name) + 1]
 
 # Small budgets for the bundled example (`make demo`), shared by every 3DGS training stage.
 _FAST_TRAIN = {"refine_start": 100, "refine_every": 50, "sh_degree": 1, "sh_increase_every": 200,

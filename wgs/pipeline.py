@@ -12,12 +12,13 @@ from typing import Any
 
 import torch
 
+from .config import METHOD, RESULTS
 from .io import read_json
 from .progress import log, results
 from .workspace import Workspace
 
 MANY_VIEWS = 12  # from this many training views on, diffusion repair is left out by default
-REPAIR_STAGES = ("mask_data", "finetune", "repair", "fine")
+REPAIR_STAGES = METHOD[METHOD.index("coarse") + 1:]  # what a sparse-view scene adds to plain 3DGS
 
 
 @dataclass
@@ -88,7 +89,7 @@ def print_summary(ws: Workspace, outcomes: list[StageOutcome]) -> None:
         table.add_row(o.stage, o.status + (f" ({o.note})" if o.note else ""), f"{o.seconds:.1f}",
                       "" if wt is None else f"{wt:.1f}")
     results.print(table)
-    res_path = ws.stage_dir("eval") / "results.json"
+    res_path = ws.stage_dir("eval") / RESULTS
     if res_path.is_file():
         r = read_json(res_path)
         c = r["coarse"]

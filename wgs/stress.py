@@ -26,6 +26,7 @@ from typing import Any
 
 import torch
 
+from .config import CKPT, RESULTS
 from .workspace import STAGE_DIRS, Workspace
 
 # Long enough that every stage spans several seconds on a 2-core CPU (the tests use a smaller one).
@@ -112,15 +113,15 @@ def running_stage(ws: Path) -> str:
 
 def outcome(ws: Path) -> dict[str, Any]:
     """What must not depend on interruptions: metrics and the final model's tensors."""
-    res = json.loads((ws / STAGE_DIRS["eval"] / "results.json").read_text())
+    res = json.loads((ws / STAGE_DIRS["eval"] / RESULTS).read_text())
     keep = {k: res[k] for k in ("psnr", "ssim", "num_gaussians")}
     keep["coarse"] = {k: res["coarse"][k] for k in ("psnr", "ssim", "num_gaussians")}
     return keep
 
 
 def max_param_difference(a: Path, b: Path) -> float:
-    ca = torch.load(a / STAGE_DIRS["fine"] / "ckpt.pt", weights_only=True)["splats"]
-    cb = torch.load(b / STAGE_DIRS["fine"] / "ckpt.pt", weights_only=True)["splats"]
+    ca = torch.load(a / STAGE_DIRS["fine"] / CKPT, weights_only=True)["splats"]
+    cb = torch.load(b / STAGE_DIRS["fine"] / CKPT, weights_only=True)["splats"]
     if ca.keys() != cb.keys() or any(ca[k].shape != cb[k].shape for k in ca):
         return float("inf")
     return max(float((ca[k] - cb[k]).abs().max()) for k in ca)

@@ -28,30 +28,14 @@ from pathlib import Path
 from typing import Any
 
 from . import __version__
+from .config import REGISTRY
 from .errors import InputError, WgsError, WorkspaceLocked
 from .io import atomic_write_bytes, atomic_write_json, json_default
 from .resume import Checkpointer
 
-STAGE_DIRS: dict[str, str] = {
-    "scene": "scene",
-    "coarse": "1_coarse",
-    "mask_data": "2_mask_data",
-    "finetune": "3_finetune",
-    "repair": "4_repair",
-    "fine": "5_fine",
-    "eval": "6_eval",
-}
-UPSTREAM: dict[str, tuple[str, ...]] = {
-    "scene": (),
-    "coarse": ("scene",),
-    "mask_data": ("scene", "coarse"),
-    "finetune": ("coarse", "mask_data"),
-    "repair": ("scene", "coarse", "finetune"),
-    "fine": ("scene", "coarse", "finetune", "repair"),  # finetune: later rounds repair again
-    "eval": ("scene", "coarse", "fine"),
-}
-COMMANDS = {"scene": "prepare", "coarse": "coarse", "mask_data": "mask-data", "finetune": "finetune",
-            "repair": "repair", "fine": "fine", "eval": "eval"}
+STAGE_DIRS: dict[str, str] = {s.name: s.folder for s in REGISTRY}
+UPSTREAM: dict[str, tuple[str, ...]] = {s.name: s.upstream for s in REGISTRY}
+COMMANDS: dict[str, str] = {s.name: s.command for s in REGISTRY}
 MANIFEST = "manifest.json"
 LOCK = ".wgs.lock"
 RESUME = ".resume"  # WS/.resume/<stage dir>/: staging folder `out/`, loop checkpoints `*.pt`, `fingerprint`

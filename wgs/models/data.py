@@ -6,6 +6,7 @@ from pathlib import Path
 
 import torch
 
+from ..config import INDEX
 from ..errors import InputError
 from ..io import read_json
 from ..wavelet.haar import dwt2
@@ -40,7 +41,7 @@ def load_pairs(folder: Path, domain: str, levels: int = 1) -> tuple[torch.Tensor
     stored RGB pairs); rgb: the images. `folder`: what `wgs mask-data` wrote (index.json, pairs/)."""
     from ..wavelet.exr import read_subbands  # OpenImageIO only where pair files are read
 
-    index_path = folder / "index.json"
+    index_path = folder / INDEX
     index = read_json(index_path)
     pairs = index.get("pairs", [])
     if not pairs:

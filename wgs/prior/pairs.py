@@ -33,9 +33,9 @@ def to_u8(x: torch.Tensor | np.ndarray) -> np.ndarray:
 
 def object_pairs(scene_dir: Path, work: Path, views: int, coarse_overrides: dict, seed: int = 0) -> dict:
     """prepare + coarse on `views` views of the scene, then G_c at every test pose -> arrays."""
+    from ..config import CKPT
     from ..stages.s0_prepare import run_prepare
     from ..stages.s1_coarse import run_coarse
-    from ..stages.shared import CKPT
 
     ws = Workspace(work)
     t0 = time.perf_counter()

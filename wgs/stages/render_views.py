@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import torch
 
+from ..config import CKPT
 from ..errors import InputError
 from ..gaussians.splats import load_checkpoint
 from ..gaussians.trainer import render_frame
@@ -12,7 +13,7 @@ from ..scene.dataset import load_prepared
 from ..scene.images import write_gif, write_png
 from ..scene.orbit import orbit_frames
 from ..workspace import Workspace
-from .shared import CKPT, background_for
+from .shared import background_for
 
 STAGE_CKPT = {"coarse": ("coarse", CKPT), "fine": ("fine", CKPT)}
 

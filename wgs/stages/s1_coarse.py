@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import torch
 
-from ..config import CoarseConfig, as_dict
+from ..config import CKPT, PLY, CoarseConfig, as_dict
 from ..curves import CURVE, test_probe, write_curve
 from ..gaussians.splats import VIEWER_SH_DEGREE, Splats, export_ply, save_checkpoint, to_world
 from ..gaussians.trainer import render_frame, train_gaussians
@@ -17,7 +17,7 @@ from ..scene.dataset import PreparedScene, composite, load_prepared
 from ..scene.images import write_png
 from ..wavelet.exr import write_subbands
 from ..workspace import StageRun, Workspace
-from .shared import CKPT, PLY, background_for, initial_splats, member_checkpoint, subbands_hwc
+from .shared import background_for, initial_splats, member_checkpoint, subbands_hwc
 
 
 def write_coarse_outputs(run: StageRun, scene: PreparedScene, splats: Splats, device: torch.device) -> dict:

@@ -15,7 +15,7 @@ from typing import Any
 
 import torch
 
-from ..config import MaskDataConfig, as_dict
+from ..config import INDEX, MaskDataConfig, as_dict
 from ..errors import InputError
 from ..gaussians.splats import Splats
 from ..gaussians.trainer import render_frame, train_gaussians
@@ -26,8 +26,6 @@ from ..scene.dataset import PreparedScene, composite, load_prepared
 from ..wavelet.exr import write_subbands
 from ..workspace import STAGE_DIRS, StageRun, Workspace
 from .shared import background_for, initial_splats, subbands_hwc
-
-INDEX = "index.json"
 
 
 class PairWriter:

@@ -10,7 +10,7 @@ from typing import Any
 
 import torch
 
-from ..config import FinetuneConfig, as_dict
+from ..config import INDEX, FinetuneConfig, as_dict
 from ..errors import InputError
 from ..io import atomic_write_json, read_json
 from ..metrics import psnr
@@ -84,7 +84,7 @@ def train_denoiser(cfg: FinetuneConfig, clean: torch.Tensor, bad: torch.Tensor, 
 
 def load_hf_data(ws: Workspace) -> tuple[torch.Tensor, torch.Tensor, list[str]]:
     """Coarse renders and references of the training views as images [V, 3, H, W] (from their subbands)."""
-    index = read_json(ws.stage_dir("mask_data") / "index.json")
+    index = read_json(ws.stage_dir("mask_data") / INDEX)
     renders, refs, names = [], [], []
     for p in index["hf_pairs"]:
         imgs = []

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..config import RepairConfig, as_dict
+from ..config import VIEWS, RepairConfig, as_dict
 from ..io import atomic_write_json
 from ..models.repair import load_repairer
 from ..progress import log
@@ -19,7 +19,7 @@ from ..scene.images import write_png
 from ..scene.orbit import novel_views, sphere_views
 from ..wavelet.exr import write_subbands
 from ..workspace import StageRun, Workspace
-from .shared import VIEWS, background_for, coarse_members, ensemble_repair
+from .shared import background_for, coarse_members, ensemble_repair
 
 
 def contact_sheet(rows: list[tuple[torch.Tensor, torch.Tensor]]) -> np.ndarray:

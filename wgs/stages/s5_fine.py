@@ -6,7 +6,7 @@ import dataclasses
 
 import torch
 
-from ..config import FineConfig, as_dict
+from ..config import CKPT, PLY, VIEWS, FineConfig, as_dict
 from ..curves import CURVE, test_probe, write_curve
 from ..gaussians.splats import VIEWER_SH_DEGREE, export_ply, load_checkpoint, save_checkpoint, to_world
 from ..gaussians.trainer import PseudoViews, train_gaussians
@@ -15,7 +15,7 @@ from ..progress import log
 from ..scene.dataset import Frame, load_prepared
 from ..wavelet.exr import read_subbands
 from ..workspace import Workspace
-from .shared import CKPT, PLY, VIEWS, background_for, ensemble_repair, workspace_repairer
+from .shared import background_for, ensemble_repair, workspace_repairer
 
 
 def pseudo_schedule(cfg: FineConfig):

@@ -12,7 +12,7 @@ from typing import Any
 import torch
 
 from .. import __version__
-from ..config import CoarseConfig, EvalConfig, as_dict
+from ..config import CKPT, METHOD, RESULTS, CoarseConfig, EvalConfig, as_dict
 from ..curves import CURVE, read_curve, test_probe, write_curve
 from ..errors import InputError
 from ..gaussians.splats import load_checkpoint, save_checkpoint
@@ -25,14 +25,13 @@ from ..scene.dataset import composite, load_prepared
 from ..scene.images import write_gif, write_png
 from ..scene.orbit import orbit_frames
 from ..workspace import STAGE_DIRS, StageRun, Workspace
-from .shared import CKPT, background_for, coarse_members, ensemble_repair, initial_splats, workspace_repairer
+from .shared import background_for, coarse_members, ensemble_repair, initial_splats, workspace_repairer
 
 METRICS_DOC = {
     "psnr": "mean over views of per-view PSNR (dB), images in [0, 1] on the dataset background",
     "ssim": "11x11 Gaussian window, sigma 1.5, zero padding, mean of the map (3DGS / GaussianObject code)",
     "lpips": "LPIPS v0.1 in plain torch from local torchvision-format weights",
 }
-PIPELINE = ("scene", "coarse", "mask_data", "finetune", "repair", "fine")
 
 
 def evaluate_model(splats, frames, device, bg, lpips_fn, out_dir=None, desc="eval") -> dict[str, dict[str, float]]:
@@ -85,7 +84,7 @@ def summarise(per: dict[str, dict[str, float]]) -> dict[str, float | None]:
 
 def stage_times(ws: Workspace) -> list[dict[str, Any]]:
     rows, cum = [], 0.0
-    for st in PIPELINE:
+    for st in METHOD:
         m = ws.manifest(st)
         if m is None:
             continue
@@ -288,7 +287,7 @@ def run_eval(ws: Workspace, cfg: EvalConfig, device: torch.device, force: bool =
                                                                     "lpips", "lpips_std") if k in results["fine"]}})
             # what error_vs_time.png shows: (cumulative s, probe-view PSNR) per training loop
             res["curves"] = curve_points(ws, stage_times(ws), run.path("baseline", CURVE) if cfg.baseline else None)
-            atomic_write_json(run.path("results.json"), res)
+            atomic_write_json(run.path(RESULTS), res)
             write_report(run, stage_times(ws), results["coarse"], results["fine"], time.perf_counter() - t0,
                          lpips_note, res["curves"], results.get("baseline_3dgs"))
             if cfg.turntable_frames > 0:

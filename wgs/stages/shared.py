@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import torch
 
-from ..config import RepairConfig, TrainConfig
+from ..config import CKPT, MEMBERS, RepairConfig, TrainConfig
 from ..errors import InputError
 from ..gaussians.init import knn_mean_distance, random_init, visual_hull
 from ..gaussians.splats import Splats, create_splats, load_checkpoint
@@ -15,11 +15,6 @@ from ..models.repair import Repairer, load_repairer, repair_image, symmetrized
 from ..progress import log
 from ..scene.dataset import Frame, PreparedScene
 from ..wavelet.haar import dwt2
-
-VIEWS = "views.json"  # 4_repair: the pseudo views' cameras and weights
-CKPT = "ckpt.pt"
-PLY = "point_cloud.ply"
-MEMBERS = "members"  # 1_coarse: the ensemble's other coarse models, members/ckpt_<i>.pt (i >= 1)
 
 
 def initial_splats(scene: PreparedScene, cfg: TrainConfig, seed: int) -> Splats:

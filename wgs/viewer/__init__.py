@@ -61,7 +61,8 @@ def viewer_frame(w2cs: list[np.ndarray]) -> ViewerFrame:
 
 
 def model_path(ws, stage: str | None) -> tuple[str, Path]:
-    from ..stages.shared import CKPT, newest_model
+    from ..config import CKPT
+    from ..stages.shared import newest_model
 
     stage = stage or newest_model(ws)
     path = ws.stage_dir(stage) / CKPT
