@@ -30,7 +30,7 @@ from typing import Any
 from . import __version__
 from .config import REGISTRY
 from .errors import InputError, WgsError, WorkspaceLocked
-from .io import atomic_write_bytes, atomic_write_json, json_default
+from .io import atomic_write_bytes, atomic_write_json, json_default, path_in
 from .resume import Checkpointer
 
 STAGE_DIRS: dict[str, str] = {s.name: s.folder for s in REGISTRY}
@@ -66,9 +66,7 @@ class StageRun:
     checkpoint_every: float = 60.0
 
     def path(self, *parts: str) -> Path:
-        p = self.dir.joinpath(*parts)
-        p.parent.mkdir(parents=True, exist_ok=True)
-        return p
+        return path_in(self.dir, *parts)
 
     def checkpointer(self, key: str) -> Checkpointer:
         return Checkpointer(self.dir.parent / f"{key}.pt", self.checkpoint_every, self.resume)

@@ -12,6 +12,13 @@ from typing import Any
 from ..errors import InputError, WgsError
 
 
+def path_in(folder: Path, *parts: str) -> Path:
+    """folder/parts..., its parent folder created."""
+    p = folder.joinpath(*parts)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    return p
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary sibling path; it replaces `path` by rename only if the block succeeds."""

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..config import PrepareConfig
 from ..errors import InputError
-from ..io import atomic_write_bytes, atomic_write_json
+from ..io import atomic_write_bytes, atomic_write_json, path_in
 from .colmap import undistort, write_model
 from .convention import normalisation_from_cameras, orthonormalise, rotation_error, scale_intrinsics
 from .formats import read_scene
@@ -110,12 +110,6 @@ def _load_view(v: View, cfg: PrepareConfig, root: Path) -> tuple[np.ndarray, np.
     return rgb, mask, K
 
 
-def _at(out: Path, *parts: str) -> Path:
-    p = out.joinpath(*parts)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    return p
-
-
 def prepare(scene: RawScene, cfg: PrepareConfig, out: Path) -> dict[str, Any]:
     """Write the workspace scene folder for `scene` into the stage's staging folder."""
     ids = {"train": scene.train, "test": scene.test}
@@ -131,9 +125,9 @@ def prepare(scene: RawScene, cfg: PrepareConfig, out: Path) -> dict[str, Any]:
             if name in used:
                 raise InputError(f"two images map to the same name {name}", v.image)
             used.add(name)
-            write_png(_at(out, "images", name), rgb)
+            write_png(path_in(out, "images", name), rgb)
             if mask is not None:
-                write_png(_at(out, "masks", name), mask)
+                write_png(path_in(out, "masks", name), mask)
             has_mask[name] = mask is not None
             names.append(name)
             Ks.append(K)
@@ -145,9 +139,9 @@ def prepare(scene: RawScene, cfg: PrepareConfig, out: Path) -> dict[str, Any]:
     if any(masked) and not all(masked):
         missing = train_names[masked.index(False)]
         raise InputError(f"some training views have masks but {missing} has none", scene.root)
-    write_model(_at(out, "sparse", "cameras.txt").parent, names, Ks, w2cs, sizes)
-    atomic_write_bytes(_at(out, "split_train.txt"), ("\n".join(train_names) + "\n").encode())
-    atomic_write_bytes(_at(out, "split_test.txt"), ("\n".join(test_names) + "\n").encode() if test_names else b"")
+    write_model(path_in(out, "sparse", "cameras.txt").parent, names, Ks, w2cs, sizes)
+    atomic_write_bytes(path_in(out, "split_train.txt"), ("\n".join(train_names) + "\n").encode())
+    atomic_write_bytes(path_in(out, "split_test.txt"), ("\n".join(test_names) + "\n").encode() if test_names else b"")
     res = sorted(set(sizes))
     info = {
         "format": scene.format,
@@ -162,5 +156,5 @@ def prepare(scene: RawScene, cfg: PrepareConfig, out: Path) -> dict[str, Any]:
         "normalisation": norm.to_json(),
         "notes": scene.notes,
     }
-    atomic_write_json(_at(out, "scene.json"), info)
+    atomic_write_json(path_in(out, "scene.json"), info)
     return info
