@@ -139,6 +139,23 @@ def scene_formats(blender_scene, tmp_path_factory) -> dict[str, Path]:
     }
 
 
+@pytest.fixture(scope="session")
+def finished_workspace(tmp_path_factory) -> tuple[Path, str]:
+    """One tiny `wgs all` for the whole session: (folder with scene/, wgs.toml (TINY) and ws/, the
+    command's output). Tests copy ws/ before they change anything in it."""
+    from click.testing import CliRunner
+
+    from wgs.cli import cli
+
+    base = tmp_path_factory.mktemp("finished")
+    scene = make_scene(base / "scene", seed=2, size=64, n_train=4, n_test=5)
+    (base / "wgs.toml").write_text(TINY)
+    res = CliRunner().invoke(cli, ["-q", "--config", str(base / "wgs.toml"), "-w", str(base / "ws"), "all",
+                                   str(scene)], catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    return base, res.output
+
+
 @pytest.fixture
 def scene_copy(blender_scene, tmp_path) -> Path:
     """A writable copy of the example scene, for tests that break it."""

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import TINY, expect_error, make_scene, run_cli, to_idr
+from conftest import expect_error, make_scene, run_cli, to_idr
 
 from wgs.cli import Ctx
 from wgs.config import as_dict, load_config_file
@@ -22,16 +22,9 @@ from wgs.workspace import Workspace
 
 
 @pytest.fixture(scope="module")
-def done(tmp_path_factory):
-    """A finished tiny `wgs all` workspace (copied by each test)."""
-
-    base = tmp_path_factory.mktemp("bad_stages")
-    scene = make_scene(base / "scene", seed=4, size=48, n_train=4, n_test=3)
-    cfg = base / "wgs.toml"
-    cfg.write_text(TINY)
-    proc = run_cli(["-q", "--config", cfg, "-w", base / "ws", "all", scene], base)
-    assert proc.returncode == 0, proc.stderr
-    return base
+def done(finished_workspace):
+    """The session's finished tiny `wgs all` workspace (copied by each test)."""
+    return finished_workspace[0]
 
 
 @pytest.fixture

@@ -121,7 +121,7 @@ def test_finetune_and_repair_stages_with_controlnet(tiny_sd, tmp_path):
     run("finetune", "--diffusion", "controlnet", "--sd-model", str(tiny_sd[0]), "--controlnet", str(tiny_sd[1]))
     w = Workspace(ws)
     assert (w.stage_dir("finetune") / "D_lora" / "lora.safetensors").is_file()
-    assert (w.stage_dir("finetune") / "U" / "model.safetensors").is_file()
+    assert (w.stage_dir("finetune") / "U" / "model.safetensors").is_file() == w.manifest("finetune")["u_used"]
     run("repair")
     views = json.loads((w.stage_dir("repair") / "views.json").read_text())
     assert views["views"] and (w.stage_dir("repair") / "pseudo" / views["views"][0]["name"]).is_file()

@@ -75,7 +75,6 @@ def test_finetune_trains_and_saves_d_and_u(coarse_ws, tmp_path):
     invoke("-w", str(ws.root), "finetune", "--preset", "fast", "--d-steps", "30", "--u-max-steps", "30")
     d = ws.stage_dir("finetune")
     D, cfg = load_model(d / "D")
-    U, _ = load_model(d / "U")
     assert cfg["domain"] == "wavelet"
     # the default starts from the shipped prior: D repairs in one step from the render
     assert cfg["start"] == "corrupted" and ws.manifest("finetune")["prior"].endswith("weights")
@@ -83,6 +82,11 @@ def test_finetune_trains_and_saves_d_and_u(coarse_ws, tmp_path):
     assert len(curves["D"]["loss"]) > 0 and "val" in curves["U"]
     assert (d / "curves.png").stat().st_size > 1000
     m = ws.manifest("finetune")
+    # U is trained, and kept only where it beats no HF repair on the held-out crops
+    assert m["u_used"] == curves["U"]["beats_identity"] == (m["u_best_val"] < m["u_identity_val"])
+    assert (d / "U").is_dir() == m["u_used"]
+    if m["u_used"]:
+        load_model(d / "U")
     for k in ("l1_before", "l1_after", "psnr_before", "psnr_after"):
         assert torch.isfinite(torch.tensor(m["heldout"][k]))
     # --prior none: today's from-scratch denoising D (SDEdit at repair time), its own width

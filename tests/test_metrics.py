@@ -7,7 +7,7 @@ import torch
 import torch.nn.functional as F
 
 from wgs.lpips import LPIPS, LpipsUnavailable
-from wgs.metrics import ssim
+from wgs.metrics import ssim, ssim_map
 
 
 def ssim_reference(a: np.ndarray, b: np.ndarray) -> float:
@@ -35,6 +35,34 @@ def test_ssim_matches_float64_reference():
     a = rng.random((13, 17, 3))
     b = np.clip(a + rng.normal(scale=0.1, size=a.shape), 0, 1)
     assert abs(ssim(torch.from_numpy(a).float(), torch.from_numpy(b).float()) - ssim_reference(a, b)) < 1e-6
+
+
+def test_ssim_map_reflect_is_kornias_training_loss_map():
+    import kornia
+
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(2, 3, 19, 23, generator=g, dtype=torch.float64)
+    y = (x + 0.2 * torch.randn(x.shape, generator=g, dtype=torch.float64)).clamp(0, 1)
+    ours = ssim_map(x, y, padding="reflect", eps=1e-12)
+    torch.testing.assert_close(ours, kornia.metrics.ssim(x, y, 11), rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(ssim_map(x.float(), y.float(), padding="reflect", eps=1e-12), ours.float(),
+                               rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("padding", ["zeros", "reflect"])
+def test_ssim_map_gradcheck(padding):
+    g = torch.Generator().manual_seed(1)
+    x = torch.rand(1, 2, 12, 13, generator=g, dtype=torch.float64, requires_grad=True)
+    y = torch.rand(1, 2, 12, 13, generator=g, dtype=torch.float64)
+    assert torch.autograd.gradcheck(lambda a: ssim_map(a, y, padding=padding), (x,))
+
+
+def test_ssim_map_refuses_bad_input():
+    x = torch.rand(1, 3, 16, 16)
+    with pytest.raises(ValueError, match="padding"):
+        ssim_map(x, x, padding="circular")
+    with pytest.raises(ValueError, match="one shape"):
+        ssim_map(x, x[..., :8])
 
 
 

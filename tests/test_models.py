@@ -13,6 +13,7 @@ from wgs.models.sampling import sdedit_repair
 from wgs.models.scheduler import DDIMScheduler
 from wgs.models.storage import load_model, save_model
 from wgs.stages.s3_finetune import train_denoiser, train_hf_unet
+from wgs.wavelet.haar import dwt2, idwt2
 
 
 def test_add_noise_and_velocity_closed_form():
@@ -85,3 +86,16 @@ def test_u_early_stopping_stops_when_validation_rises():
     i_best = vals.index(min(vals))
     assert len(vals) - 1 - i_best == 3  # stopped after `patience` evaluations without improvement
     assert curve["best_val"] == min(vals) <= curve["identity_val"]
+    assert not curve["beats_identity"]  # the held-out view needs no HF repair: U is left out
+
+
+def test_u_that_learns_a_consistent_correction_beats_identity():
+    # every view's reference has its HF halved: a correction that generalises to the held-out view
+    g = torch.Generator().manual_seed(0)
+    renders = torch.rand(4, 3, 32, 32, generator=g) * 2 - 1
+    ll, [h] = dwt2(renders, 1)
+    refs = idwt2(ll, [tuple(0.5 * b for b in h)])
+    cfg = FinetuneConfig(u_channels=8, u_max_steps=300, u_batch=4, u_crop=8, u_lr=5e-3, u_eval_every=20,
+                         u_patience=3)
+    _, curve = train_hf_unet(cfg, renders, refs, torch.device("cpu"), g)
+    assert curve["beats_identity"] and curve["best_val"] < 0.8 * curve["identity_val"]

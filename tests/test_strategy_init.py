@@ -67,6 +67,31 @@ def test_strategy_grows_high_gradient_and_respects_cap():
     assert_consistent(params, opts)
 
 
+def test_strategy_reads_gsplats_batched_means2d_like_ours():
+    # gsplat's CUDA path hands over means2d as [1, N, 2] (meta["means2d_batched"]); ours is [N, 2]
+    g = torch.Generator().manual_seed(0)
+    grad = torch.randn(20, 2, generator=g)
+    visible = torch.rand(20, generator=g) > 0.3
+    states = []
+    for batched in (False, True):
+        means2d = torch.zeros(1, 20, 2) if batched else torch.zeros(20, 2)
+        means2d.requires_grad_(True)
+        means2d.grad = grad[None].clone() if batched else grad.clone()
+        strat = DensifyStrategy()
+        state = strat.initial_state()
+        meta = {"means2d": means2d, "visible": visible, "width": 64, "height": 32}
+        if batched:
+            meta["means2d_batched"] = True
+        strat.accumulate(state, meta)
+        strat.accumulate(state, meta)
+        states.append(state)
+    for k in ("grad2d", "count"):
+        assert states[0][k].shape == (20,)
+        torch.testing.assert_close(states[1][k], states[0][k])
+    scaled = grad * torch.tensor([32.0, 16.0])
+    torch.testing.assert_close(states[0]["grad2d"], torch.where(visible, 2 * scaled.norm(dim=-1), 0.0))
+
+
 def sphere_frames(radius=0.3, size=48, n=4):
     frames = []
     f = 60.0

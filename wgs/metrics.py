@@ -1,8 +1,9 @@
 """Image quality metrics as the 3DGS papers compute them.
 
 PSNR: per image, averaged over images by the caller. SSIM: 11x11 Gaussian window (sigma 1.5) with
-zero padding, mean of the map (the 3DGS / GaussianObject code; kornia's reflect-padded SSIM,
-used as the training loss, gives slightly different numbers). LPIPS lives in `lpips.py`.
+zero padding, mean of the map (the 3DGS / GaussianObject code); the training loss uses the same
+map reflect-padded (kornia's convention), which gives slightly different numbers. LPIPS lives in
+`lpips.py`.
 """
 
 from __future__ import annotations
@@ -29,6 +30,36 @@ def gaussian_window(size: int = 11, sigma: float = 1.5, dtype=torch.float64) -> 
     return g / g.sum()
 
 
+def ssim_map(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5, padding: str = "zeros",
+             eps: float = 0.0) -> torch.Tensor:
+    """SSIM map of two batches [B, C, H, W] -> [B, C, H, W]; differentiable, any float dtype.
+
+    padding "zeros": the 3DGS papers' metric; "reflect" with eps = 1e-12: kornia.metrics.ssim's
+    map (the training loss). The five local moments are filtered in one separable depthwise
+    Gaussian over 5C channels instead of ten convolutions: 12 ms instead of kornia's 19 ms for a
+    200 x 200 forward + backward on this project's 2-core CPU.
+    """
+    if x.shape != y.shape or x.dim() != 4:
+        raise ValueError(f"ssim_map expects two [B, C, H, W] batches of one shape, got {tuple(x.shape)}, "
+                         f"{tuple(y.shape)}")
+    if padding not in ("zeros", "reflect"):
+        raise ValueError(f"ssim_map padding must be 'zeros' or 'reflect', got {padding!r}")
+    c, k, pad = x.shape[1], 5 * x.shape[1], window // 2
+    g = gaussian_window(window, sigma, x.dtype).to(x.device)
+    moments = torch.cat([x, y, x * x, y * y, x * y], 1)
+    if padding == "reflect":
+        moments, pads = F.pad(moments, (pad, pad, pad, pad), mode="reflect"), ((0, 0), (0, 0))
+    else:
+        pads = ((0, pad), (pad, 0))
+    moments = F.conv2d(moments, g.view(1, 1, 1, -1).expand(k, 1, 1, window), padding=pads[0], groups=k)
+    moments = F.conv2d(moments, g.view(1, 1, -1, 1).expand(k, 1, window, 1), padding=pads[1], groups=k)
+    mu_x, mu_y, xx, yy, xy = moments.split(c, 1)
+    mu_xx, mu_yy, mu_xy = mu_x * mu_x, mu_y * mu_y, mu_x * mu_y
+    num = (2 * mu_xy + SSIM_C1) * (2 * (xy - mu_xy) + SSIM_C2)
+    den = (mu_xx + mu_yy + SSIM_C1) * ((xx - mu_xx) + (yy - mu_yy) + SSIM_C2)
+    return num / (den + eps)
+
+
 def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5) -> float:
     """SSIM of two images [H, W, C] in [0, 1] (zero-padded Gaussian window, mean over the map).
 
@@ -36,22 +67,5 @@ def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5)
     """
     if a.shape != b.shape or a.dim() != 3:
         raise ValueError(f"ssim expects two [H, W, C] images of one shape, got {tuple(a.shape)}, {tuple(b.shape)}")
-    x = a.permute(2, 0, 1)[None].double()
-    y = b.permute(2, 0, 1)[None].double()
-    c = x.shape[1]
-    g = gaussian_window(window, sigma).to(x.device)
-    gx = g.reshape(1, 1, 1, -1).repeat(c, 1, 1, 1)
-    gy = g.reshape(1, 1, -1, 1).repeat(c, 1, 1, 1)
-    pad = window // 2
-
-    def blur(t: torch.Tensor) -> torch.Tensor:
-        # separable: with zero padding, rows then columns equals the 11x11 window exactly
-        return F.conv2d(F.conv2d(t, gx, padding=(0, pad), groups=c), gy, padding=(pad, 0), groups=c)
-
-    mu_x, mu_y = blur(x), blur(y)
-    sxx = blur(x * x) - mu_x**2
-    syy = blur(y * y) - mu_y**2
-    sxy = blur(x * y) - mu_x * mu_y
-    num = (2 * mu_x * mu_y + SSIM_C1) * (2 * sxy + SSIM_C2)
-    den = (mu_x**2 + mu_y**2 + SSIM_C1) * (sxx + syy + SSIM_C2)
-    return float((num / den).mean())
+    x, y = (t.permute(2, 0, 1)[None].double() for t in (a, b))
+    return float(ssim_map(x, y, window, sigma).mean())

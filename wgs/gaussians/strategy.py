@@ -44,12 +44,14 @@ class DensifyStrategy(DensifyParams):
         return {"grad2d": None, "count": None}
 
     def accumulate(self, state: dict[str, Any], meta: dict[str, Any]) -> None:
-        """Add this view's 2D mean gradients (after backward) to the running statistics."""
+        """Add this view's 2D mean gradients (after backward) to the running statistics.
+
+        meta["means2d"]: [N, 2], or gsplat's [1, N, 2] when meta["means2d_batched"]."""
         g = meta["means2d"].grad
         if g is None:
             return
         vis = meta["visible"]
-        g = g.detach().clone()
+        g = g.detach()[0].clone() if meta.get("means2d_batched") else g.detach().clone()
         g[:, 0] *= meta["width"] / 2.0  # pixel -> NDC gradient scale, as 3DGS
         g[:, 1] *= meta["height"] / 2.0
         n = g.shape[0]

@@ -13,11 +13,11 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-import kornia
 import torch
 
 from ..config import TrainConfig
 from ..errors import WgsError
+from ..metrics import ssim_map
 from ..progress import progress_bar
 from ..resume import Checkpointer, check_interrupt, deferred_sigint, rng_state, set_rng_state
 from ..scene.dataset import Frame
@@ -82,8 +82,8 @@ def photometric_loss(render: torch.Tensor, target: torch.Tensor, ssim_weight: fl
                      weight: torch.Tensor | None = None) -> torch.Tensor:
     """0.8·L1 + 0.2·(1 - SSIM) on [H, W, 3] images, optionally weighted per pixel by [H, W]."""
     l1 = (render - target).abs().mean(-1)
-    ssim_map = kornia.metrics.ssim(render.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None], 11)[0].mean(0)
-    per_px = (1 - ssim_weight) * l1 + ssim_weight * (1 - ssim_map)
+    ssim = ssim_map(render.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None], padding="reflect", eps=1e-12)
+    per_px = (1 - ssim_weight) * l1 + ssim_weight * (1 - ssim[0].mean(0))
     if weight is None:
         return per_px.mean()
     return (per_px * weight).sum() / weight.sum().clamp_min(1.0)

@@ -110,8 +110,10 @@ def train_hf_unet(cfg: FinetuneConfig, renders: torch.Tensor, refs: torch.Tensor
                   gen: torch.Generator, checkpoint: Checkpointer | None = None, init: HFUNet | None = None
                   ) -> tuple[HFUNet, dict[str, Any]]:
     """L1 on HF subbands of augmented crops; early stopping on held-out crops (a held-out view when
-    there are 3 or more, else fixed crops). init: start from these weights (the prior's U); the
-    starting model stays the best until a step beats it."""
+    there are 3 or more, else fixed crops). init: start from these weights (the prior's U).
+    The bar is the better of the starting model and no repair at all (identity): an evaluation
+    that does not beat it counts toward the patience, so a U that cannot beat the identity stops
+    early, and curve["beats_identity"] tells the caller to leave it out."""
     n = renders.shape[0]
     val_ids = torch.tensor([n - 1]) if n >= 3 else torch.arange(n)
     train_ids = torch.arange(n - 1) if n >= 3 else torch.arange(n)
@@ -123,8 +125,7 @@ def train_hf_unet(cfg: FinetuneConfig, renders: torch.Tensor, refs: torch.Tensor
     with torch.no_grad():
         identity = (v_hc - v_hr).abs().mean().item()
         start = (model(v_hc, v_ll) - v_hr).abs().mean().item()
-    # the starting U (zero-initialised: the identity repair) stays the best until a step beats it
-    st: dict[str, Any] = {"curve": {"step": [], "train": [], "val": []}, "best": start,
+    st: dict[str, Any] = {"curve": {"step": [], "train": [], "val": []}, "best": min(start, identity),
                           "best_state": copy.deepcopy(model.state_dict()), "bad_evals": 0,
                           "stopped": cfg.u_max_steps, "acc": 0.0, "step": 0, "finished": False}
     if checkpoint is not None and (saved := checkpoint.load()) is not None:
@@ -173,7 +174,8 @@ def train_hf_unet(cfg: FinetuneConfig, renders: torch.Tensor, refs: torch.Tensor
                 break
             check_interrupt("finetune U", step, checkpoint, snapshot)
     model.load_state_dict(st["best_state"])
-    curve.update({"best_val": st["best"], "identity_val": identity, "start_val": start, "stopped_at": st["stopped"]})
+    curve.update({"best_val": st["best"], "identity_val": identity, "start_val": start, "stopped_at": st["stopped"],
+                  "beats_identity": st["best"] < identity})
     return model.eval(), curve
 
 
@@ -271,7 +273,7 @@ def plot_curves(path, curves: dict[str, Any]) -> None:
         axes[1].plot(u["step"], u["train"], label="train")
         axes[1].plot(u["step"], u["val"], label="held-out")
         axes[1].axhline(u["identity_val"], ls="--", c="grey", label="no repair")
-        axes[1].set(title="U (HF L1)", xlabel="step")
+        axes[1].set(title="U (HF L1)" if u.get("beats_identity", True) else "U (HF L1): left out", xlabel="step")
         axes[1].legend()
     else:
         axes[1].axis("off")
@@ -297,7 +299,10 @@ def run_finetune(ws: Workspace, cfg: FinetuneConfig, device: torch.device, seed:
             run.record.update(record)
     held_txt = (f"; held-out L1 {record['heldout']['l1_before']:.4f} -> {record['heldout']['l1_after']:.4f}"
                 if "heldout" in record else "")
-    u_txt = f"; U {record['u_seconds']:.0f} s, stopped at {record['u_stopped_at']}" if "u_seconds" in record else ""
+    u_txt = ""
+    if "u_seconds" in record:
+        kept = "kept" if record["u_used"] else "left out: no better than no HF repair on held-out crops"
+        u_txt = f"; U {record['u_seconds']:.0f} s, stopped at {record['u_stopped_at']}, {kept}"
     log(f"finetune: D {record['d_seconds']:.0f} s{held_txt}{u_txt}")
     return True
 
@@ -362,8 +367,10 @@ def finish_with_u(run: StageRun, ws: Workspace, cfg: FinetuneConfig, record: dic
         init = load_model(prior / "U", device)[0] if prior is not None else None
         u_model, u_curve = train_hf_unet(cfg, renders, refs, device, gen, run.checkpointer("u"), init)
         record.update({"u_seconds": round(time.perf_counter() - t1, 2), "u_best_val": u_curve["best_val"],
-                       "u_identity_val": u_curve["identity_val"], "u_stopped_at": u_curve["stopped_at"]})
-        save_model(run.dir / "U", u_model)
+                       "u_identity_val": u_curve["identity_val"], "u_stopped_at": u_curve["stopped_at"],
+                       "u_used": u_curve["beats_identity"]})
+        if u_curve["beats_identity"]:  # else the repair leaves HF as rendered: what this scene needs
+            save_model(run.dir / "U", u_model)
         curves["U"] = u_curve
     atomic_write_json(run.path("curves.json"), curves)
     if "D" in curves:
