@@ -15,8 +15,8 @@ import pytest
 import torch
 from conftest import expect_error, make_scene, run_cli, to_idr
 
-from wgs.cli import Ctx
 from wgs.config import as_dict, load_config_file
+from wgs.context import Ctx
 from wgs.scene.images import read_image, write_png
 from wgs.workspace import Workspace
 

@@ -15,8 +15,9 @@ from wgs.scene.dataset import Frame
 
 
 def tiny_training(probe, iterations=5):
-    f = Frame("a.png", torch.tensor([[20.0, 0, 8], [0, 20, 8], [0, 0, 1]]),
-              torch.tensor(ring_w2c()[0], dtype=torch.float32), 16, 16, torch.rand(16, 16, 3))
+    f = Frame(torch.tensor([[20.0, 0, 8], [0, 20, 8], [0, 0, 1]]),
+              torch.tensor(ring_w2c()[0], dtype=torch.float32), 16, 16, name="a.png",
+              image=torch.rand(16, 16, 3))
     sp = create_splats(torch.randn(40, 3) * 0.1, torch.rand(40, 3), torch.full((40,), 0.05), 0)
     cfg = TrainConfig(iterations=iterations, refine_start=100, floater_every=0, log_every=1)
     return train_gaussians(sp, [f], cfg, torch.device("cpu"), extent=1.0, has_masks=False, probe=probe)

@@ -18,8 +18,9 @@ from wgs.stages.s3_finetune import train_denoiser
 
 
 def test_nan_in_training_stops_with_iteration_and_group():
-    f = Frame("a.png", torch.tensor([[20.0, 0, 8], [0, 20, 8], [0, 0, 1]]),
-              torch.tensor(ring_w2c()[0], dtype=torch.float32), 16, 16, torch.full((16, 16, 3), float("nan")))
+    f = Frame(torch.tensor([[20.0, 0, 8], [0, 20, 8], [0, 0, 1]]),
+              torch.tensor(ring_w2c()[0], dtype=torch.float32), 16, 16, name="a.png",
+              image=torch.full((16, 16, 3), float("nan")))
     sp = create_splats(torch.randn(50, 3) * 0.1, torch.rand(50, 3), torch.full((50,), 0.05), 0)
     cfg = TrainConfig(iterations=5, refine_start=100, floater_every=0, log_every=1)
     with pytest.raises(WgsError, match="non-finite at iteration 1"):
@@ -29,8 +30,9 @@ def test_nan_in_training_stops_with_iteration_and_group():
 def test_parameter_overflow_names_the_group_and_saves_nothing(tmp_path):
     """A mean that overflowed to inf after iteration 1 (planted through the shared storage that
     on_step sees): iteration 2 stops, naming the group, and no state is saved."""
-    f = Frame("a.png", torch.tensor([[20.0, 0, 8], [0, 20, 8], [0, 0, 1]]),
-              torch.tensor(ring_w2c()[0], dtype=torch.float32), 16, 16, torch.rand(16, 16, 3))
+    f = Frame(torch.tensor([[20.0, 0, 8], [0, 20, 8], [0, 0, 1]]),
+              torch.tensor(ring_w2c()[0], dtype=torch.float32), 16, 16, name="a.png",
+              image=torch.rand(16, 16, 3))
     sp = create_splats(torch.randn(50, 3) * 0.1, torch.rand(50, 3), torch.full((50,), 0.05), 0)
     cfg = TrainConfig(iterations=5, refine_start=100, floater_every=0, log_every=1)
     ck = Checkpointer(tmp_path / "state.pt", every_s=1e9, resume=False)

@@ -64,6 +64,28 @@ def test_lower_layers_know_no_workspace():
         assert "wgs.workspace" not in graph[m], f"{m} imports wgs.workspace: take paths, use wgs.io"
 
 
+def test_orchestration_and_stages_know_no_click():
+    # the CLI is click only: orchestration takes wgs.context.Ctx, a plain object
+    for rel in ("pipeline.py", "ablation.py", "context.py", "stages"):
+        for p in [WGS / rel] if rel.endswith(".py") else sorted((WGS / rel).glob("*.py")):
+            tops = set()
+            for node in ast.walk(ast.parse(p.read_text())):
+                if isinstance(node, ast.Import):
+                    tops.update(a.name.split(".")[0] for a in node.names)
+                elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                    tops.add(node.module.split(".")[0])
+            assert "click" not in tops, f"{p.relative_to(WGS.parent)} imports click"
+
+
+def test_bench_and_stress_tools_stay_apart():
+    # `python -m wgs.bench` / `wgs.stress` are tools around the product: nothing of it imports them
+    graph = import_graph()
+    tools = {"wgs.bench", "wgs.stress"}
+    assert tools <= set(graph)
+    for m, deps in graph.items():
+        assert m in tools or not deps & tools, f"{m} imports {sorted(deps & tools)}"
+
+
 def test_no_import_cycle():
     graph, state = import_graph(), {}
 

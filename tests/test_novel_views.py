@@ -17,8 +17,8 @@ def ring(n=4, radius=1.0, height=0.3):
     for i in range(n):
         a = 2 * math.pi * i / n + 0.1 * i
         eye = np.array([radius * math.cos(a), radius * math.sin(a), height])
-        out.append(Frame(f"t{i}.png", K, torch.tensor(look_at(eye, eye * 0, np.array([0, 0, 1.0])),
-                                                        dtype=torch.float32), 64, 64))
+        out.append(Frame(K, torch.tensor(look_at(eye, eye * 0, np.array([0, 0, 1.0])), dtype=torch.float32), 64, 64,
+                         name=f"t{i}.png"))
     return out
 
 

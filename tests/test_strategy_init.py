@@ -106,7 +106,7 @@ def sphere_frames(radius=0.3, size=48, n=4):
         rays = torch.stack([(xs - size / 2) / f, (ys - size / 2) / f, torch.ones_like(xs)], -1)
         rays = rays / rays.norm(dim=-1, keepdim=True)
         mask = (rays[..., 2] >= math.cos(math.asin(radius / d))).float()
-        frames.append(Frame(f"v{i}.png", K, w2c, size, size, torch.rand(size, size, 3), mask))
+        frames.append(Frame(K, w2c, size, size, name=f"v{i}.png", image=torch.rand(size, size, 3), mask=mask))
     return frames
 
 

@@ -134,6 +134,8 @@ def run_ablation(ctx, scene_dir: Path, root: Path, rows: list[Row], repeats: int
             records.append({"row": row.name, "repeat": rep, "seed": seed, "psnr": res["psnr"], "ssim": res["ssim"],
                             "lpips": res["lpips"],
                             "repair_gain_db": (res.get("repair_gain") or {}).get("gain_db"),
+                            # U trained but left out where it did not beat no HF repair on held-out crops
+                            "u_used": (ws.manifest("finetune") or {}).get("u_used") if row.use_u else None,
                             "time_s": round(sum(timings[row.name].values()), 2),
                             "stage_times_s": timings[row.name]})
     return records
@@ -146,7 +148,8 @@ def aggregate(records: list[dict[str, Any]], rows: list[Row]) -> list[dict[str, 
         repair = row.strategy is not None
         agg: dict[str, Any] = {"row": row.name, "strategy": row.strategy, "domain": row.domain if repair else None,
                                "use_u": row.use_u, "levels": row.levels if repair else None,
-                               "prior": row.prior if repair else None, "repeats": len(rs)}
+                               "prior": row.prior if repair else None, "repeats": len(rs),
+                               "u_kept": sum(bool(r.get("u_used")) for r in rs) if row.use_u and repair else None}
         for k in ("psnr", "ssim", "lpips", "time_s", "repair_gain_db"):
             vals = [r[k] for r in rs if r.get(k) is not None]
             agg[k] = statistics.fmean(vals) if vals else None
@@ -155,6 +158,12 @@ def aggregate(records: list[dict[str, Any]], rows: list[Row]) -> list[dict[str, 
         agg["stage_times_s"] = {s: statistics.fmean(r["stage_times_s"].get(s, 0.0) for r in rs) for s in stages}
         out.append(agg)
     return out
+
+
+def u_note(r: dict[str, Any]) -> str:
+    """How often a requested U was kept (finetune leaves it out where it does not beat no HF repair)."""
+    kept = r.get("u_kept")
+    return "" if kept is None or kept == r["repeats"] else f" (kept {kept}/{r['repeats']})"
 
 
 def pareto(rows: list[dict[str, Any]]) -> set[str]:
@@ -189,7 +198,7 @@ def write_outputs(root: Path, agg: list[dict[str, Any]], records: list[dict[str,
         st = r["strategy"]
         cells = [tick[st == "loo"], tick[st == "offline-rm"], tick[st == "orm"],
                  tick[r["domain"] == "wavelet"] + (f" J={r['levels']}" if (r["levels"] or 1) > 1 else ""),
-                 tick[bool(r["use_u"]) and st is not None], tick[r.get("prior") not in (None, "none")]]
+                 tick[bool(r["use_u"]) and st is not None] + u_note(r), tick[r.get("prior") not in (None, "none")]]
         lines.append(f"| {r['row']} | " + " | ".join(cells) + f" | {pm(r, 'psnr', 2)} | {pm(r, 'ssim', 3)} | "
                      f"{pm(r, 'lpips', 3)} | {pm(r, 'repair_gain_db', 2)} | {pm(r, 'time_s', 1)} | "
                      + " | ".join(f(r["stage_times_s"].get(s), 1) for s in stages) + " |")

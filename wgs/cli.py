@@ -8,19 +8,18 @@ from __future__ import annotations
 
 import errno
 import sys
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import click
 
 from . import __version__
-from .config import as_dict, load_config_file, resolve
+from .config import as_dict, load_config_file
+from .context import Ctx
 from .errors import WgsError
-from .progress import log, results, set_quiet
+from .progress import results, set_quiet
 from .resume import Interrupted
 from .threads import configure as configure_threads
-from .workspace import STAGE_DIRS, Workspace
+from .workspace import STAGE_DIRS
 
 HELP = """WaveletGaussian: sparse-view 3D Gaussian object reconstruction.
 
@@ -47,44 +46,6 @@ class PipelineOrderGroup(click.Group):
 
     def list_commands(self, ctx: click.Context) -> list[str]:
         return list(self.commands)
-
-
-@dataclass
-class Ctx:
-    workspace: Path | None
-    device: str
-    seed: int
-    debug: bool
-    file_cfg: dict[str, Any] = field(default_factory=dict)
-    resume: bool = False
-    checkpoint_every: float = 60.0
-    config_path: Path | None = None
-
-    def child_args(self) -> list[str]:
-        """The global options again, for a `wgs` child process (wgs batch)."""
-        out = ["--seed", str(self.seed), "--checkpoint-every", str(self.checkpoint_every)]
-        if self.device != "auto":
-            out += ["--device", self.device]
-        if self.config_path is not None:
-            out += ["--config", str(self.config_path.resolve())]
-        if self.resume:
-            out.append("--resume")
-        return out
-
-    def ws(self) -> Workspace:
-        if self.workspace is None:
-            raise WgsError("no workspace: pass -w/--workspace DIR")
-        return Workspace(self.workspace, resume=self.resume, checkpoint_every=self.checkpoint_every)
-
-    def config(self, stage: str, preset: str | None, **cli: Any) -> Any:
-        return resolve(stage, preset or self.file_cfg.get("global", {}).get("preset"), self.file_cfg, cli)
-
-    def torch_device(self):
-        from .device import resolve_device
-
-        dev = resolve_device(self.device)
-        log(f"device: {dev}")
-        return dev
 
 
 @click.group(cls=PipelineOrderGroup, help=HELP,

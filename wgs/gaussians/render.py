@@ -11,6 +11,7 @@ from typing import Any
 
 import torch
 
+from ..scene.camera import camera_center
 from .project import project_gaussians
 from .project_numba import project_gaussians_numba
 from .raster_torch import rasterize_pixels_torch
@@ -68,7 +69,7 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
                                                                         height, near=near)
     if colors.dim() == 3:
         deg = sh_degree_of(colors.shape[1]) if sh_degree is None else sh_degree
-        campos = -viewmat[:3, :3].T @ viewmat[:3, 3]
+        campos = camera_center(viewmat)
         rgb_g = torch.clamp_min(eval_sh(colors, means - campos, deg) + 0.5, 0.0)
     else:
         rgb_g = colors

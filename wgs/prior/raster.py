@@ -11,6 +11,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from ..scene.camera import camera_center
 from .meshes import Mesh
 
 NEAR = 1e-3
@@ -122,7 +123,7 @@ def render_rgba(mesh: Mesh, viewmat: np.ndarray, K: np.ndarray, width: int, heig
     Ks = K.copy()
     Ks[:2] *= s
     tri, bary, _ = rasterize(mesh.vertices, mesh.faces, viewmat, Ks, width * s, height * s)
-    eye = -viewmat[:3, :3].T @ viewmat[:3, 3]
+    eye = camera_center(viewmat)
     rgb = shade(mesh, tri, bary, eye)
     cov = (tri >= 0).astype(np.float64)
     premult = (rgb * cov[..., None]).reshape(height, s, width, s, 3).mean((1, 3))

@@ -10,6 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .camera import camera_center
+
 GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
@@ -112,7 +114,7 @@ def look_at_center(centers: np.ndarray, forwards: np.ndarray) -> np.ndarray:
 
 def normalisation_from_cameras(w2cs: list[np.ndarray]) -> Normalisation:
     """Centre: nearest point to the training cameras' axes; scale: their median distance to it."""
-    centers = np.stack([-m[:3, :3].T @ m[:3, 3] for m in w2cs])
+    centers = np.stack([camera_center(m) for m in w2cs])
     forwards = np.stack([m[2, :3] / np.linalg.norm(m[2, :3]) for m in w2cs])
     center = look_at_center(centers, forwards)
     scale = float(np.median(np.linalg.norm(centers - center, axis=1)))

@@ -9,34 +9,26 @@ import torch
 
 from ..errors import InputError
 from ..io import read_json
+from .camera import Camera
 from .colmap import read_model
 from .convention import Normalisation
 from .images import read_image
 
 
-@dataclass
-class Frame:
-    """One prepared view. Tensors are float32 on the CPU.
+@dataclass(kw_only=True)
+class Frame(Camera):
+    """One prepared view: a Camera (in the normalised world) plus its name and images. Tensors are
+    float32 on the CPU.
 
     Attributes:
         name: image name in the workspace.
-        K: [3, 3] intrinsics.  viewmat: [4, 4] world-to-camera (OpenCV, normalised world).
         image: [H, W, 3] straight (not premultiplied) colour in [0, 1], or None if not loaded.
         mask: [H, W] in [0, 1], or None.
     """
 
     name: str
-    K: torch.Tensor
-    viewmat: torch.Tensor
-    width: int
-    height: int
     image: torch.Tensor | None = None
     mask: torch.Tensor | None = None
-
-    @property
-    def center(self) -> torch.Tensor:
-        R, t = self.viewmat[:3, :3], self.viewmat[:3, 3]
-        return -R.T @ t
 
 
 @dataclass
@@ -75,7 +67,7 @@ def load_prepared(sdir: Path, load_test_images: bool = False) -> PreparedScene:
             if n not in model:
                 raise InputError(f"image {n} is not in the COLMAP model", sdir / "sparse")
             K, w2c, w, h = model[n]
-            f = Frame(n, torch.tensor(K, dtype=torch.float32), torch.tensor(w2c, dtype=torch.float32), w, h)
+            f = Frame(torch.tensor(K, dtype=torch.float32), torch.tensor(w2c, dtype=torch.float32), w, h, name=n)
             out.append(f)
         return load_frame_images(sdir, out) if with_images else out
 

@@ -141,15 +141,19 @@ def write_png(path: Path, img: np.ndarray) -> None:
         img = img[..., None]
     data = np.clip(np.rint(np.clip(img, 0.0, 1.0) * 255.0), 0, 255).astype(np.uint8)
     h, w, c = data.shape
-    spec = oiio.ImageSpec(w, h, c, "uint8")
+    write_with_oiio(path, data, oiio.ImageSpec(w, h, c, "uint8"), "PNG")
+
+
+def write_with_oiio(path: Path, data: np.ndarray, spec, what: str) -> None:
+    """Write [H, W, C] `data` as `spec` describes it, atomically (a temporary file, then a rename)."""
     with atomic_path(path) as tmp:
         out = oiio.ImageOutput.create(str(tmp))
         if out is None or not out.open(str(tmp), spec):
-            raise OSError(f"{path}: cannot write PNG: {_oiio_error()}")
+            raise OSError(f"{path}: cannot write {what}: {_oiio_error()}")
         ok = out.write_image(np.ascontiguousarray(data))
         out.close()
         if not ok:
-            raise OSError(f"{path}: cannot write PNG: {_oiio_error()}")
+            raise OSError(f"{path}: cannot write {what}: {_oiio_error()}")
 
 
 def find_with_stem(folder: Path, stem: str) -> Path | None:

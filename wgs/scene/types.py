@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .camera import camera_center
+
 
 @dataclass
 class Distortion:
@@ -43,8 +45,7 @@ class View:
     @property
     def center(self) -> np.ndarray:
         """Camera centre in world coordinates, [3]."""
-        R, t = self.w2c[:3, :3], self.w2c[:3, 3]
-        return -R.T @ t
+        return camera_center(self.w2c)
 
     @property
     def forward(self) -> np.ndarray:

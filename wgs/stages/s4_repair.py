@@ -66,8 +66,7 @@ def repair_views(run: StageRun, ws: Workspace, scene, cfg: RepairConfig, device:
         write_subbands(run.path("pseudo", f"{stem}.exr"), {"RGB": fixed.numpy()}, half=False)
         write_png(run.path("pseudo", frame.name), fixed.numpy())
         rows.append((render, fixed))
-        listing.append({"name": frame.name, "K": frame.K.tolist(), "viewmat": frame.viewmat.tolist(),
-                        "width": frame.width, "height": frame.height, "distance": dist,
+        listing.append({"name": frame.name, **frame.to_json(), "distance": dist,
                         "weight": min(1.0, 2.0 * dist / d_max) if d_max > 0 else 1.0})
     write_png(run.path("contact_sheet.png"), contact_sheet(rows))
     atomic_write_json(run.path(VIEWS), {"domain": domain, "used_u": U is not None, "views": listing})

@@ -12,6 +12,7 @@ from ..gaussians.splats import VIEWER_SH_DEGREE, export_ply, load_checkpoint, sa
 from ..gaussians.trainer import PseudoViews, train_gaussians
 from ..io import read_json
 from ..progress import log
+from ..scene.camera import Camera
 from ..scene.dataset import Frame, load_prepared
 from ..wavelet.exr import read_subbands
 from ..workspace import Workspace
@@ -36,8 +37,8 @@ def load_pseudo_views(ws: Workspace) -> tuple[list[Frame], list[float]]:
     frames, weights = [], []
     for v in listing["views"]:
         img = read_subbands(d / "pseudo" / f"{v['name'].rsplit('.', 1)[0]}.exr")["RGB"]
-        frames.append(Frame(v["name"], torch.tensor(v["K"]), torch.tensor(v["viewmat"]), v["width"], v["height"],
-                            torch.from_numpy(img)))
+        cam = Camera.from_json(v)
+        frames.append(Frame(cam.K, cam.viewmat, cam.width, cam.height, name=v["name"], image=torch.from_numpy(img)))
         weights.append(float(v["weight"]))
     return frames, weights
 
@@ -47,8 +48,8 @@ def repaired_again(ws: Workspace, splats, frames: list[Frame], background: torch
     """The pseudo frames with images rendered from `splats` and repaired by this workspace's D and U
     (the repair stage's settings): the next round's pseudo references."""
     repairer = workspace_repairer(ws, device, seed)
-    return [Frame(f.name, f.K, f.viewmat, f.width, f.height,
-                  ensemble_repair([splats], f, background, repairer, device)[1]) for f in frames]
+    return [dataclasses.replace(f, image=ensemble_repair([splats], f, background, repairer, device)[1])
+            for f in frames]
 
 
 def lpips_for_training(cfg: FineConfig, device: torch.device):

@@ -250,11 +250,17 @@ def run_eval(ws: Workspace, cfg: EvalConfig, device: torch.device, force: bool =
         with ws.stage_run("eval", config, fp) as run:
             t0 = time.perf_counter()
             results, gain, pers = {}, None, {}
+            want_gain = cfg.repair_gain and final == "fine" and ws.manifest("finetune") is not None
+            members = None
             for key, st in (("fine", final), ("coarse", "coarse")):
                 if key == "coarse" and final == "coarse":
                     results["coarse"] = results["fine"]
                     continue
-                splats, _ = load_checkpoint(ws.stage_dir(st) / CKPT, scene.norm, device)
+                if key == "coarse" and want_gain:  # G_c is the ensemble's first member: loaded once
+                    members = coarse_members(ws, scene, device)
+                    splats = members[0]
+                else:
+                    splats, _ = load_checkpoint(ws.stage_dir(st) / CKPT, scene.norm, device)
                 out = run.path("renders", "x").parent if key == "fine" else None
                 per = evaluate_model(splats, frames, device, bg, lpips_fn, out, desc=f"eval {st}")
                 if key == "fine":
@@ -263,8 +269,8 @@ def run_eval(ws: Workspace, cfg: EvalConfig, device: torch.device, force: bool =
                 pers[key] = per
                 results[key] = {**summarise(per), "num_gaussians": int(splats["means"].shape[0]),
                                 "num_views": len(frames)}
-                if key == "coarse" and cfg.repair_gain and final == "fine" and ws.manifest("finetune"):
-                    gain = measure_repair_gain(ws, coarse_members(ws, scene, device), frames, device, bg, seed)
+                if members is not None:
+                    gain = measure_repair_gain(ws, members, frames, device, bg, seed)
             if cfg.baseline:
                 b_splats, b_record = train_baseline(run, ws, scene, stage_times(ws), device, seed)
                 per = evaluate_model(b_splats, frames, device, bg, lpips_fn, desc="eval baseline")

@@ -39,10 +39,11 @@ class ViewerFrame:
 def viewer_frame(w2cs: list[np.ndarray]) -> ViewerFrame:
     """From the training cameras (world-to-camera OpenCV [4, 4]): up is their mean up, the object
     centre the point nearest their optical axes, the start view the first camera's."""
+    from ..scene.camera import camera_center
     from ..scene.convention import look_at_center
 
     Rs = np.stack([m[:3, :3] for m in w2cs])
-    centers = np.stack([-R.T @ m[:3, 3] for R, m in zip(Rs, w2cs, strict=True)])
+    centers = np.stack([camera_center(m) for m in w2cs])
     center = look_at_center(centers, Rs[:, 2, :])
     up = -Rs[:, 1, :].mean(0)
     up /= max(np.linalg.norm(up), 1e-12)

@@ -13,8 +13,7 @@ import numpy as np
 import OpenImageIO as oiio
 
 from ..errors import InputError
-from ..io import atomic_path
-from ..scene.images import oiio_path
+from ..scene.images import oiio_path, write_with_oiio
 
 HALF_MAX = 65504.0
 RGB = ("R", "G", "B")
@@ -51,14 +50,7 @@ def write_subbands(path: str | Path, bands: dict[str, np.ndarray], half: bool = 
     spec = oiio.ImageSpec(w, h, c, "half" if half else "float")
     spec.channelnames = tuple(channel_names(bands))
     spec.attribute("compression", "zip")
-    with atomic_path(path) as tmp:
-        out = oiio.ImageOutput.create(str(tmp))
-        if out is None or not out.open(str(tmp), spec):
-            raise OSError(f"{path}: cannot write EXR: {oiio.geterror()}")
-        ok = out.write_image(np.ascontiguousarray(data))
-        out.close()
-        if not ok:
-            raise OSError(f"{path}: cannot write EXR: {oiio.geterror()}")
+    write_with_oiio(path, data, spec, "EXR")
 
 
 def read_subbands(path: str | Path) -> dict[str, np.ndarray]:

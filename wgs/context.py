@@ -1,0 +1,53 @@
+"""The global options of a `wgs` run as a plain object (built by the CLI, read by orchestration)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .config import resolve
+from .errors import WgsError
+from .progress import log
+from .workspace import Workspace
+
+
+@dataclass
+class Ctx:
+    """What every command shares: the global options and the config file's tables. The pipeline,
+    the ablation and the batch runner take this plain object, never click's context."""
+
+    workspace: Path | None
+    device: str
+    seed: int
+    debug: bool
+    file_cfg: dict[str, Any] = field(default_factory=dict)
+    resume: bool = False
+    checkpoint_every: float = 60.0
+    config_path: Path | None = None
+
+    def child_args(self) -> list[str]:
+        """The global options again, for a `wgs` child process (wgs batch)."""
+        out = ["--seed", str(self.seed), "--checkpoint-every", str(self.checkpoint_every)]
+        if self.device != "auto":
+            out += ["--device", self.device]
+        if self.config_path is not None:
+            out += ["--config", str(self.config_path.resolve())]
+        if self.resume:
+            out.append("--resume")
+        return out
+
+    def ws(self) -> Workspace:
+        if self.workspace is None:
+            raise WgsError("no workspace: pass -w/--workspace DIR")
+        return Workspace(self.workspace, resume=self.resume, checkpoint_every=self.checkpoint_every)
+
+    def config(self, stage: str, preset: str | None, **cli: Any) -> Any:
+        return resolve(stage, preset or self.file_cfg.get("global", {}).get("preset"), self.file_cfg, cli)
+
+    def torch_device(self):
+        from .device import resolve_device
+
+        dev = resolve_device(self.device)
+        log(f"device: {dev}")
+        return dev
