@@ -100,7 +100,7 @@ def test_save_and_reload_reproduce_the_output(tiny_sd, tmp_path):
 def test_finetune_and_repair_stages_with_controlnet(tiny_sd, tmp_path):
     """`wgs finetune --diffusion controlnet` trains LoRA on the LL pairs; `wgs repair` then uses it."""
     from click.testing import CliRunner
-    from test_end_to_end import TINY
+    from conftest import TINY
 
     from wgs.cli import cli
     from wgs.workspace import Workspace
