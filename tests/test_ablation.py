@@ -4,6 +4,7 @@ import csv
 import json
 import math
 
+import pytest
 from click.testing import CliRunner
 from conftest import TINY, make_scene
 
@@ -12,6 +13,7 @@ from wgs.cli import cli
 from wgs.workspace import Workspace
 
 
+@pytest.mark.slow
 def test_ablate_all_rows(tmp_path):
     scene = make_scene(tmp_path / "scene", seed=5, size=64, n_train=4, n_test=3)
     cfg = tmp_path / "wgs.toml"

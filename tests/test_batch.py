@@ -17,6 +17,8 @@ from wgs.batch import SceneTask, read_scene_list, shard, shard_from_env
 from wgs.cli import cli
 from wgs.errors import InputError
 
+pytestmark = pytest.mark.slow  # `pytest -m 'not slow'` for a quick loop; make test runs all
+
 
 @pytest.fixture(scope="module")
 def scenes(tmp_path_factory):

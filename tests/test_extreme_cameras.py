@@ -43,6 +43,7 @@ def test_nearly_collinear_cameras_give_a_finite_centre():
     assert np.isfinite(n.center).all() and np.isfinite(n.scale) and n.scale > 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("unit", [1e-3, 1e4])
 def test_scene_in_other_units_trains_to_the_same_model_up_to_scale(blender_scene, tmp_path, unit):
     """The tiny scene with every camera position multiplied by `unit` (radius ~3e-3 .. 3e4): prepare +

@@ -25,6 +25,8 @@ from wgs.errors import InputError
 from wgs.scene.formats import read_scene
 from wgs.scene.splits import choose_split
 
+pytestmark = pytest.mark.slow  # `pytest -m 'not slow'` for a quick loop; make test runs all
+
 common = {"deadline": None, "suppress_health_check": [HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
           "derandomize": True}
 settings.register_profile("ci", max_examples=800, **common)

@@ -21,6 +21,8 @@ from wgs.resume import Checkpointer, Interrupted
 from wgs.stages.s3_finetune import train_denoiser, train_hf_unet
 from wgs.stress import max_param_difference, outcome
 
+pytestmark = pytest.mark.slow  # `pytest -m 'not slow'` for a quick loop; make test runs all
+
 # TINY with longer coarse and mask-data loops, so a kill lands in their middle
 CFG = (TINY.replace("iterations = 30\nrefine_start = 10\nrefine_every = 10",
                     "iterations = 150\nrefine_start = 20\nrefine_every = 20")

@@ -88,6 +88,7 @@ def test_sequential_matcher_poses_a_ring(photos, tmp_path):
     assert np.median(estimated_vs_true(tmp_path / "model", image_dir, cams)["rotation_deg"]) < 1.5
 
 
+@pytest.mark.slow
 def test_features_only_inside_the_masks(tmp_path):
     """A turntable: the room, the same in every photo, gives no 3D points."""
     cams = make_photos(tmp_path / "p", n=20, turntable=True)
