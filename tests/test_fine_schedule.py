@@ -7,8 +7,7 @@ from wgs.stages.s5_fine import pseudo_schedule
 def test_default_keeps_pseudo_views_to_the_end():
     cfg = FineConfig(iterations=1000)
     w = pseudo_schedule(cfg)
-    assert cfg.pseudo_weight_start == cfg.pseudo_weight_end == 2.0  # a pseudo view weighs twice a real one
-    assert w(0) == w(500) == w(1000) == 2.0
+    assert w(0) == w(500) == w(1000) == 1.0
 
 
 def test_gaussianobject_schedule_ramps_then_stops():
