@@ -137,7 +137,7 @@ def test_views_that_share_no_object_region(tmp_path, blender_scene):
         q = h // 4  # each view's object in another corner
         img[[slice(0, q), slice(h - q, h)][k // 2 % 2], [slice(0, q), slice(w - q, w)][k % 2], 3] = 1.0
         write_png(p, img)
-    expect_error(tmp_path, ["-q", "-w", tmp_path / "ws", "coarse"], "no prepared scene", "wgs prepare")
+    expect_error(tmp_path, ["-q", "-w", tmp_path / "ws", "coarse"], "prepare stage has not run", "wgs prepare")
     assert run_cli(["-q", "-w", tmp_path / "ws", "prepare", scene], tmp_path).returncode == 0
     expect_error(tmp_path, ["-q", "-w", tmp_path / "ws", "coarse"], str(scene), "visual hull", "empty", "masks")
     assert not (tmp_path / "ws" / "1_coarse").exists()

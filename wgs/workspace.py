@@ -22,13 +22,13 @@ import shutil
 import socket
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from . import __version__
-from .config import REGISTRY
+from .config import REGISTRY, as_dict
 from .errors import InputError, WgsError, WorkspaceLocked
 from .io import atomic_write_bytes, atomic_write_json, json_default, path_in
 from .resume import Checkpointer
@@ -228,6 +228,24 @@ class Workspace:
         return rdir / "out"
 
     # -- running a stage -------------------------------------------------------------------------
+    def run_stage(self, stage: str, settings: Any, extra: Any, force: bool, body: Callable[[StageRun], str],
+                  requires: tuple[str, ...] | None = None) -> bool:
+        """Every stage's runner: under the lock, skip the stage when it is fresh, check that the stages
+        it reads have run (`requires`, default its registry upstream), run body(run) in the staging
+        folder and swap it in with the manifest; body returns the line to log. Returns False when
+        the stage was up to date."""
+        from .progress import log
+
+        config = as_dict(settings)
+        with self.lock():
+            fp = self.begin(stage, config, extra, force, UPSTREAM[stage] if requires is None else requires)
+            if fp is None:
+                return False
+            with self.stage_run(stage, config, fp) as run:
+                message = body(run)
+        log(message)
+        return True
+
     @contextlib.contextmanager
     def stage_run(self, stage: str, config: dict[str, Any], fp: str) -> Iterator[StageRun]:
         """Stage outputs go to a staging folder, swapped in with the manifest only on success."""

@@ -162,21 +162,25 @@ def _span(P, k, x0, x1, y0, y1):
     return px0, px1, py0, py1
 
 
+@nb.njit(cache=True, inline="always")
+def _tile_box(t, width, height, tile):
+    """Pixel box [x0, x1) x [y0, y1) of tile t (row-major tiles of `tile` pixels, cut at the image edge)."""
+    tiles_x = (width + tile - 1) // tile
+    ty = t // tiles_x
+    x0, y0 = (t - ty * tiles_x) * tile, ty * tile
+    return x0, min(width, x0 + tile), y0, min(height, y0 + tile)
+
+
 @nb.njit(parallel=True, cache=True, fastmath=True)
 def _forward(P, offsets, bg, width, height, tile, out_color, out_T, out_last):
     """Gaussian-outer within a tile: each entry visits only the pixels of its box, front to back,
     with the tile's transmittance kept per pixel (the same sums, in the same order per pixel, as
     looping over the entries per pixel)."""
-    tiles_x = (width + tile - 1) // tile
-    n_tiles = offsets.shape[0] - 1
     D = bg.shape[0]
-    for t in nb.prange(n_tiles):
-        ty = t // tiles_x
-        tx = t - ty * tiles_x
+    for t in nb.prange(offsets.shape[0] - 1):
         s = offsets[t]
         e = offsets[t + 1]
-        x0, y0 = tx * tile, ty * tile
-        x1, y1 = min(width, x0 + tile), min(height, y0 + tile)
+        x0, x1, y0, y1 = _tile_box(t, width, height, tile)
         T = np.ones((tile, tile))
         last = np.full((tile, tile), s, np.int64)
         done = np.zeros((tile, tile), np.bool_)
@@ -222,15 +226,10 @@ def _forward(P, offsets, bg, width, height, tile, out_color, out_T, out_last):
 def _backward(P, offsets, bg, width, height, tile, out_T, out_last, g_color, g_alpha, G):
     """Gaussian-outer, back to front, per-pixel state in tile arrays; each entry's gradient row is
     summed over its pixels in row-major order and written once (no two threads share a row)."""
-    tiles_x = (width + tile - 1) // tile
-    n_tiles = offsets.shape[0] - 1
     D = bg.shape[0]
-    for t in nb.prange(n_tiles):
-        ty = t // tiles_x
-        tx = t - ty * tiles_x
+    for t in nb.prange(offsets.shape[0] - 1):
         s = offsets[t]
-        x0, y0 = tx * tile, ty * tile
-        x1, y1 = min(width, x0 + tile), min(height, y0 + tile)
+        x0, x1, y0, y1 = _tile_box(t, width, height, tile)
         T = np.empty((tile, tile))
         accum = np.zeros((tile, tile, D))
         lastc = np.zeros((tile, tile, D))

@@ -5,15 +5,16 @@ from __future__ import annotations
 import hashlib
 from pathlib import Path
 
-from ..config import PrepareConfig, as_dict
+from ..config import PrepareConfig
 from ..errors import InputError
 from ..io import atomic_write_bytes, atomic_write_json, read_json
 from ..progress import log
 from ..scene.formats import detect_format
 from ..scene.prepare import load_scene_for_prepare, prepare, scene_inputs_digest
 from ..scene.sfm import find_photos, pose_photos
+from ..scene.types import RawScene
 from ..threads import thread_count
-from ..workspace import Workspace
+from ..workspace import StageRun, Workspace
 
 SFM_DIR = "sfm"
 SFM_INPUTS = "inputs.sha256"
@@ -57,25 +58,22 @@ def run_prepare(ws: Workspace, scene_dir: Path, cfg: PrepareConfig, force: bool 
         s = read_json(sfm_model / SFM_SUMMARY)
         scene.notes.append(f"poses by structure-from-motion: {s['registered']} of {s['photos']} photos registered "
                            f"({s['matcher']} matching, {s['seconds']:.0f} s); the model is in {sfm_model}")
-    config = as_dict(cfg)
-    with ws.lock():
-        fp = ws.begin("scene", config, {"source": str(scene_dir.resolve()), "inputs": scene_inputs_digest(scene)},
-                      force)
-        if fp is None:
-            return False
-        held = ((ws.manifest("scene") or {}).get("summary") or {}).get("source")
-        if held is not None and Path(held) != scene_dir.resolve() and not force:
-            raise InputError(f"this workspace holds another scene ({held}): use a new -w folder, or add --force "
-                             "to replace it (every stage is then recomputed)", ws.root)
-        for note in scene.notes:
-            log(f"  note: {note}")
-        log(f"prepare: {scene.format} scene, {len(scene.train)} training + {len(scene.test)} test views")
-        with ws.stage_run("scene", config, fp) as run:
-            info = prepare(scene, cfg, run.dir)
-            run.record["summary"] = {
-                "source": info["source"], "format": info["format"], "num_train": len(info["train_names"]),
-                "num_test": len(info["test_names"]), "resolution": info["resolution"],
-                "has_masks": info["has_masks"],
-            }
-    log(f"prepare: wrote {ws.stage_dir('scene')}")
-    return True
+    extra = {"source": str(scene_dir.resolve()), "inputs": scene_inputs_digest(scene)}
+    return ws.run_stage("scene", cfg, extra, force, lambda run: import_scene(run, ws, scene_dir, scene, cfg, force))
+
+
+def import_scene(run: StageRun, ws: Workspace, scene_dir: Path, scene: RawScene, cfg: PrepareConfig, force: bool
+                 ) -> str:
+    held = ((ws.manifest("scene") or {}).get("summary") or {}).get("source")
+    if held is not None and Path(held) != scene_dir.resolve() and not force:
+        raise InputError(f"this workspace holds another scene ({held}): use a new -w folder, or add --force "
+                         "to replace it (every stage is then recomputed)", ws.root)
+    for note in scene.notes:
+        log(f"  note: {note}")
+    log(f"prepare: {scene.format} scene, {len(scene.train)} training + {len(scene.test)} test views")
+    info = prepare(scene, cfg, run.dir)
+    run.record["summary"] = {
+        "source": info["source"], "format": info["format"], "num_train": len(info["train_names"]),
+        "num_test": len(info["test_names"]), "resolution": info["resolution"], "has_masks": info["has_masks"],
+    }
+    return f"prepare: wrote {ws.stage_dir('scene')}"

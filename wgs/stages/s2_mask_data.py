@@ -15,13 +15,12 @@ from typing import Any
 
 import torch
 
-from ..config import INDEX, MaskDataConfig, as_dict
+from ..config import INDEX, MaskDataConfig
 from ..errors import InputError
 from ..gaussians.splats import Splats
 from ..gaussians.trainer import render_frame, train_gaussians
 from ..io import atomic_write_json, read_json
 from ..masking import make_region_masks
-from ..progress import log
 from ..scene.dataset import PreparedScene, composite, load_prepared
 from ..wavelet.exr import write_subbands
 from ..workspace import STAGE_DIRS, StageRun, Workspace
@@ -117,21 +116,18 @@ def hf_pairs(ws: Workspace, scene: PreparedScene) -> list[dict[str, str]]:
 
 
 def run_mask_data(ws: Workspace, cfg: MaskDataConfig, device: torch.device, seed: int, force: bool = False) -> bool:
-    config = as_dict(cfg)
-    with ws.lock():
-        fp = ws.begin("mask_data", config, {"seed": seed}, force, requires=("coarse",))
-        if fp is None:
-            return False
-        scene = load_prepared(ws.stage_dir("scene"))
-        torch.manual_seed(seed)
-        with ws.stage_run("mask_data", config, fp) as run:
-            writer = PairWriter(run, scene, device, cfg.strategy)
-            t0 = time.perf_counter()
-            stats = (run_loo if cfg.strategy == "loo" else run_orm)(cfg, scene, device, seed, writer)
-            seconds = time.perf_counter() - t0
-            atomic_write_json(run.path(INDEX), {"strategy": cfg.strategy, "pairs": writer.pairs,
-                                                "hf_pairs": hf_pairs(ws, scene)})
-            run.record.update({"strategy": cfg.strategy, "num_pairs": len(writer.pairs),
-                               "strategy_seconds": round(seconds, 2), **stats})
-    log(f"mask-data: {cfg.strategy}, {len(writer.pairs)} pairs from {stats['models']} model(s) in {seconds:.1f} s")
-    return True
+    return ws.run_stage("mask_data", cfg, {"seed": seed}, force, lambda run: make_pairs(run, ws, cfg, device, seed))
+
+
+def make_pairs(run: StageRun, ws: Workspace, cfg: MaskDataConfig, device: torch.device, seed: int) -> str:
+    scene = load_prepared(ws.stage_dir("scene"))
+    torch.manual_seed(seed)
+    writer = PairWriter(run, scene, device, cfg.strategy)
+    t0 = time.perf_counter()
+    stats = (run_loo if cfg.strategy == "loo" else run_orm)(cfg, scene, device, seed, writer)
+    seconds = time.perf_counter() - t0
+    atomic_write_json(run.path(INDEX), {"strategy": cfg.strategy, "pairs": writer.pairs,
+                                        "hf_pairs": hf_pairs(ws, scene)})
+    run.record.update({"strategy": cfg.strategy, "num_pairs": len(writer.pairs),
+                       "strategy_seconds": round(seconds, 2), **stats})
+    return f"mask-data: {cfg.strategy}, {len(writer.pairs)} pairs from {stats['models']} model(s) in {seconds:.1f} s"

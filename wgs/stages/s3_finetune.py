@@ -10,7 +10,7 @@ from typing import Any
 
 import torch
 
-from ..config import INDEX, FinetuneConfig, as_dict
+from ..config import INDEX, FinetuneConfig
 from ..errors import InputError
 from ..io import atomic_write_json, read_json
 from ..metrics import psnr
@@ -22,7 +22,7 @@ from ..models.sampling import sdedit_repair, single_step
 from ..models.scheduler import DDIMScheduler
 from ..models.storage import load_model, save_model
 from ..prior import WEIGHTS as PRIOR_WEIGHTS
-from ..progress import log, progress_bar
+from ..progress import progress_bar
 from ..resume import Checkpointer, check_interrupt, deferred_sigint, rng_state, set_rng_state
 from ..threads import adapt as adapt_threads
 from ..wavelet.exr import read_subbands
@@ -283,28 +283,25 @@ def plot_curves(path, curves: dict[str, Any]) -> None:
 
 
 def run_finetune(ws: Workspace, cfg: FinetuneConfig, device: torch.device, seed: int, force: bool = False) -> bool:
-    config = as_dict(cfg)
-    with ws.lock():
-        fp = ws.begin("finetune", config, {"seed": seed}, force, requires=("mask_data",))
-        if fp is None:
-            return False
-        gen = torch.Generator().manual_seed(seed)
-        torch.manual_seed(seed)
-        if cfg.levels < 1:
-            raise InputError(f"levels must be >= 1, got {cfg.levels}")
-        clean, bad, pairs = load_pairs(ws.stage_dir("mask_data"), cfg.domain, cfg.levels)
-        train_ids, held = split_holdout(clean.shape[0], cfg.holdout, gen)
-        with ws.stage_run("finetune", config, fp) as run:
-            record = train_and_save(run, ws, cfg, clean, bad, train_ids, held, device, gen)
-            run.record.update(record)
+    return ws.run_stage("finetune", cfg, {"seed": seed}, force, lambda run: finetune(run, ws, cfg, device, seed))
+
+
+def finetune(run: StageRun, ws: Workspace, cfg: FinetuneConfig, device: torch.device, seed: int) -> str:
+    gen = torch.Generator().manual_seed(seed)
+    torch.manual_seed(seed)
+    if cfg.levels < 1:
+        raise InputError(f"levels must be >= 1, got {cfg.levels}")
+    clean, bad, pairs = load_pairs(ws.stage_dir("mask_data"), cfg.domain, cfg.levels)
+    train_ids, held = split_holdout(clean.shape[0], cfg.holdout, gen)
+    record = train_and_save(run, ws, cfg, clean, bad, train_ids, held, device, gen)
+    run.record.update(record)
     held_txt = (f"; held-out L1 {record['heldout']['l1_before']:.4f} -> {record['heldout']['l1_after']:.4f}"
                 if "heldout" in record else "")
     u_txt = ""
     if "u_seconds" in record:
         kept = "kept" if record["u_used"] else "left out: no better than no HF repair on held-out crops"
         u_txt = f"; U {record['u_seconds']:.0f} s, stopped at {record['u_stopped_at']}, {kept}"
-    log(f"finetune: D {record['d_seconds']:.0f} s{held_txt}{u_txt}")
-    return True
+    return f"finetune: D {record['d_seconds']:.0f} s{held_txt}{u_txt}"
 
 
 def train_lora(run: StageRun, cfg: FinetuneConfig, clean, bad, device, gen) -> dict[str, Any]:

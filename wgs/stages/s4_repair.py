@@ -5,15 +5,14 @@ trained an ensemble, every member's render is repaired and the repairs are avera
 
 from __future__ import annotations
 
-from typing import Any
+import time
 
 import numpy as np
 import torch
 
-from ..config import VIEWS, RepairConfig, as_dict
+from ..config import VIEWS, RepairConfig
 from ..io import atomic_write_json
 from ..models.repair import load_repairer
-from ..progress import log
 from ..scene.dataset import load_prepared
 from ..scene.images import write_png
 from ..scene.orbit import novel_views, sphere_views
@@ -28,24 +27,12 @@ def contact_sheet(rows: list[tuple[torch.Tensor, torch.Tensor]]) -> np.ndarray:
 
 
 def run_repair(ws: Workspace, cfg: RepairConfig, device: torch.device, seed: int, force: bool = False) -> bool:
-    config = as_dict(cfg)
-    with ws.lock():
-        fp = ws.begin("repair", config, {"seed": seed}, force, requires=("finetune",))
-        if fp is None:
-            return False
-        scene = load_prepared(ws.stage_dir("scene"))
-        with ws.stage_run("repair", config, fp) as run:
-            record = repair_views(run, ws, scene, cfg, device, seed)
-            run.record.update(record)
-    log(f"repair: {record['num_views']} pseudo references in {record['seconds']:.1f} s")
-    return True
+    return ws.run_stage("repair", cfg, {"seed": seed}, force, lambda run: repair_views(run, ws, cfg, device, seed))
 
 
-def repair_views(run: StageRun, ws: Workspace, scene, cfg: RepairConfig, device: torch.device, seed: int
-                 ) -> dict[str, Any]:
-    import time
-
+def repair_views(run: StageRun, ws: Workspace, cfg: RepairConfig, device: torch.device, seed: int) -> str:
     t0 = time.perf_counter()
+    scene = load_prepared(ws.stage_dir("scene"))
     members = coarse_members(ws, scene, device)
     repairer = load_repairer(ws.stage_dir("finetune"), cfg, device, seed)
     domain, U = repairer.d_cfg.get("domain", "wavelet"), repairer.U
@@ -70,5 +57,7 @@ def repair_views(run: StageRun, ws: Workspace, scene, cfg: RepairConfig, device:
                         "weight": min(1.0, 2.0 * dist / d_max) if d_max > 0 else 1.0})
     write_png(run.path("contact_sheet.png"), contact_sheet(rows))
     atomic_write_json(run.path(VIEWS), {"domain": domain, "used_u": U is not None, "views": listing})
-    return {"num_views": len(listing), "domain": domain, "used_u": U is not None, "ensemble": len(members),
-            "seconds": round(time.perf_counter() - t0, 2)}
+    seconds = time.perf_counter() - t0
+    run.record.update({"num_views": len(listing), "domain": domain, "used_u": U is not None,
+                       "ensemble": len(members), "seconds": round(seconds, 2)})
+    return f"repair: {len(listing)} pseudo references in {seconds:.1f} s"

@@ -6,7 +6,7 @@ import dataclasses
 
 import torch
 
-from ..config import CKPT, PLY, VIEWS, FineConfig, as_dict
+from ..config import CKPT, PLY, VIEWS, FineConfig
 from ..curves import CURVE, test_probe, write_curve
 from ..gaussians.splats import VIEWER_SH_DEGREE, export_ply, load_checkpoint, save_checkpoint, to_world
 from ..gaussians.trainer import PseudoViews, train_gaussians
@@ -15,7 +15,7 @@ from ..progress import log
 from ..scene.camera import Camera
 from ..scene.dataset import Frame, load_prepared
 from ..wavelet.exr import read_subbands
-from ..workspace import Workspace
+from ..workspace import StageRun, Workspace
 from .shared import background_for, ensemble_repair, workspace_repairer
 
 
@@ -68,40 +68,36 @@ def lpips_for_training(cfg: FineConfig, device: torch.device):
 
 
 def run_fine(ws: Workspace, cfg: FineConfig, device: torch.device, seed: int, force: bool = False) -> bool:
-    config = as_dict(cfg)
-    with ws.lock():
-        fp = ws.begin("fine", config, {"seed": seed}, force, requires=("repair",))
-        if fp is None:
-            return False
-        scene = load_prepared(ws.stage_dir("scene"))
-        splats, _ = load_checkpoint(ws.stage_dir("coarse") / CKPT, scene.norm)
-        frames, weights = load_pseudo_views(ws)
-        bg = background_for(scene)
-        lpips_fn, lpips_term = lpips_for_training(cfg, device)
-        torch.manual_seed(seed)
-        probe, probe_names = test_probe(ws, scene, cfg, bg, device)
-        with ws.stage_run("fine", config, fp) as run:
-            res, curve, probe_s, offset = None, [], 0.0, 0.0
-            for r in range(1, max(1, cfg.rounds) + 1):
-                if res is not None:  # a later round: start from the refined model and its repaired renders
-                    splats = res.splats
-                    frames = repaired_again(ws, splats, frames, bg, device, seed)
-                pseudo = PseudoViews(frames, weights, pseudo_schedule(cfg), bg, cfg.pseudo_every, lpips_fn,
-                                     cfg.lpips_weight)
-                res = train_gaussians(splats, scene.train, cfg, device, extent=1.0,
-                                      desc="fine" if cfg.rounds == 1 else f"fine round {r}", seed=seed + r - 1,
-                                      has_masks=scene.has_masks, pseudo=pseudo,
-                                      checkpoint=run.checkpointer("gf" if r == 1 else f"gf{r}"), probe=probe)
-                # rounds follow each other on one time axis
-                curve += [{**p, "seconds": round(p["seconds"] + offset, 3), "round": r} for p in res.curve]
-                probe_s += res.probe_seconds
-                offset += res.seconds
-            if probe is not None:
-                write_curve(run.path(CURVE), dataclasses.replace(res, curve=curve, probe_seconds=probe_s), probe_names)
-            save_checkpoint(run.path(CKPT), res.splats, scene.norm, res.iterations)
-            n = export_ply(run.path(PLY), to_world(res.splats, scene.norm), VIEWER_SH_DEGREE)
-            run.record.update({"num_gaussians": n, "iterations": res.iterations, "num_pseudo": len(frames),
-                               "rounds": max(1, cfg.rounds), "lpips_term": lpips_term,
-                               "train_seconds": round(res.seconds, 2), "final_loss": res.losses[-1], "seed": seed})
-    log(f"fine: {n} Gaussians, {len(frames)} pseudo views, {res.seconds:.1f} s")
-    return True
+    return ws.run_stage("fine", cfg, {"seed": seed}, force, lambda run: train_fine(run, ws, cfg, device, seed))
+
+
+def train_fine(run: StageRun, ws: Workspace, cfg: FineConfig, device: torch.device, seed: int) -> str:
+    scene = load_prepared(ws.stage_dir("scene"))
+    splats, _ = load_checkpoint(ws.stage_dir("coarse") / CKPT, scene.norm)
+    frames, weights = load_pseudo_views(ws)
+    bg = background_for(scene)
+    lpips_fn, lpips_term = lpips_for_training(cfg, device)
+    torch.manual_seed(seed)
+    probe, probe_names = test_probe(ws, scene, cfg, bg, device)
+    res, curve, probe_s, offset = None, [], 0.0, 0.0
+    for r in range(1, max(1, cfg.rounds) + 1):
+        if res is not None:  # a later round: start from the refined model and its repaired renders
+            splats = res.splats
+            frames = repaired_again(ws, splats, frames, bg, device, seed)
+        pseudo = PseudoViews(frames, weights, pseudo_schedule(cfg), bg, cfg.pseudo_every, lpips_fn, cfg.lpips_weight)
+        res = train_gaussians(splats, scene.train, cfg, device, extent=1.0,
+                              desc="fine" if cfg.rounds == 1 else f"fine round {r}", seed=seed + r - 1,
+                              has_masks=scene.has_masks, pseudo=pseudo,
+                              checkpoint=run.checkpointer("gf" if r == 1 else f"gf{r}"), probe=probe)
+        # rounds follow each other on one time axis
+        curve += [{**p, "seconds": round(p["seconds"] + offset, 3), "round": r} for p in res.curve]
+        probe_s += res.probe_seconds
+        offset += res.seconds
+    if probe is not None:
+        write_curve(run.path(CURVE), dataclasses.replace(res, curve=curve, probe_seconds=probe_s), probe_names)
+    save_checkpoint(run.path(CKPT), res.splats, scene.norm, res.iterations)
+    n = export_ply(run.path(PLY), to_world(res.splats, scene.norm), VIEWER_SH_DEGREE)
+    run.record.update({"num_gaussians": n, "iterations": res.iterations, "num_pseudo": len(frames),
+                       "rounds": max(1, cfg.rounds), "lpips_term": lpips_term,
+                       "train_seconds": round(res.seconds, 2), "final_loss": res.losses[-1], "seed": seed})
+    return f"fine: {n} Gaussians, {len(frames)} pseudo views, {res.seconds:.1f} s"

@@ -12,7 +12,7 @@ from typing import Any
 import torch
 
 from .. import __version__
-from ..config import CKPT, METHOD, RESULTS, CoarseConfig, EvalConfig, as_dict
+from ..config import CKPT, METHOD, RESULTS, CoarseConfig, EvalConfig
 from ..curves import CURVE, read_curve, test_probe, write_curve
 from ..errors import InputError
 from ..gaussians.splats import load_checkpoint, save_checkpoint
@@ -232,87 +232,86 @@ def train_baseline(run: StageRun, ws: Workspace, scene, times: list[dict[str, An
 def run_eval(ws: Workspace, cfg: EvalConfig, device: torch.device, force: bool = False,
              final: str = "fine", seed: int = 0) -> bool:
     """Evaluate `final` (fine, or coarse when the repair stages were left out) and G_c."""
-    config = as_dict(cfg)
-    with ws.lock():
-        fp = ws.begin("eval", config, {"final": final}, force, requires=("coarse", final))
-        if fp is None:
-            return False
-        scene = load_prepared(ws.stage_dir("scene"), load_test_images=True)
-        if not scene.test:
-            raise InputError("the scene has no test views: nothing to evaluate", ws.stage_dir("scene"))
-        frames = scene.test[: cfg.max_views] if cfg.max_views else scene.test
-        try:
-            lpips_fn, lpips_note = LPIPS(cfg.lpips_net, cfg.lpips_weights).to(device), None
-        except LpipsUnavailable as exc:
-            lpips_fn, lpips_note = None, str(exc)
-            log(f"eval: {exc}")
-        bg = background_for(scene)
-        with ws.stage_run("eval", config, fp) as run:
-            t0 = time.perf_counter()
-            results, gain, pers = {}, None, {}
-            want_gain = cfg.repair_gain and final == "fine" and ws.manifest("finetune") is not None
-            members = None
-            for key, st in (("fine", final), ("coarse", "coarse")):
-                if key == "coarse" and final == "coarse":
-                    results["coarse"] = results["fine"]
-                    continue
-                if key == "coarse" and want_gain:  # G_c is the ensemble's first member: loaded once
-                    members = coarse_members(ws, scene, device)
-                    splats = members[0]
-                else:
-                    splats, _ = load_checkpoint(ws.stage_dir(st) / CKPT, scene.norm, device)
-                out = run.path("renders", "x").parent if key == "fine" else None
-                per = evaluate_model(splats, frames, device, bg, lpips_fn, out, desc=f"eval {st}")
-                if key == "fine":
-                    final_splats = splats  # the turntable renders it again, without a second load
-                atomic_write_json(run.path("per_view.json" if key == "fine" else "per_view_coarse.json"), per)
-                pers[key] = per
-                results[key] = {**summarise(per), "num_gaussians": int(splats["means"].shape[0]),
-                                "num_views": len(frames)}
-                if members is not None:
-                    gain = measure_repair_gain(ws, members, frames, device, bg, seed)
-            if cfg.baseline:
-                b_splats, b_record = train_baseline(run, ws, scene, stage_times(ws), device, seed)
-                per = evaluate_model(b_splats, frames, device, bg, lpips_fn, desc="eval baseline")
-                results["baseline_3dgs"] = {**summarise(per), **b_record,
-                                            "num_gaussians": int(b_splats["means"].shape[0])}
-            res = {**results["fine"], "final_model": final, "coarse": results["coarse"],
-                   "baseline_3dgs": results.get("baseline_3dgs"),
-                   "repair_gain": gain,
-                   "lpips_net": cfg.lpips_net if lpips_fn else None,
-                   "lpips_unavailable": lpips_note, "metrics": METRICS_DOC,
-                   "lpips_weights": lpips_fn.sources if lpips_fn else None,
-                   "stage_times_s": {r["stage"]: r["wall_time_s"] for r in stage_times(ws)}}
-            source = ((ws.manifest("scene") or {}).get("summary") or {}).get("source")
-            res.update({"scene": source, "method": "wgs" if final == "fine" else "wgs-coarse-only",
-                        "version": __version__, "seed": seed,
-                        # the nerfstudio `ns-eval` layout, for tools that read it
-                        "experiment_name": Path(str(source)).name if source else ws.root.name,
-                        "method_name": "wgs", "checkpoint": str(ws.stage_dir(final) / CKPT),
-                        "results": {k: results["fine"][k] for k in ("psnr", "psnr_std", "ssim", "ssim_std",
-                                                                    "lpips", "lpips_std") if k in results["fine"]}})
-            # what error_vs_time.png shows: (cumulative s, probe-view PSNR) per training loop
-            res["curves"] = curve_points(ws, stage_times(ws), run.path("baseline", CURVE) if cfg.baseline else None)
-            atomic_write_json(run.path(RESULTS), res)
-            write_report(run, stage_times(ws), results["coarse"], results["fine"], time.perf_counter() - t0,
-                         lpips_note, res["curves"], results.get("baseline_3dgs"))
-            if cfg.turntable_frames > 0:
-                write_gif(run.path("turntable.gif"), [render_frame(final_splats, f, device, bg)[0].numpy()
-                                                      for f in orbit_frames(scene.train, cfg.turntable_frames)])
-            write_html(run, ws, frames, bg, pers, results, time.perf_counter() - t0, lpips_note, gain)
-            run.record.update({"psnr": res["psnr"], "ssim": res["ssim"], "lpips": res["lpips"],
-                               "coarse_psnr": results["coarse"]["psnr"]})
+    return ws.run_stage("eval", cfg, {"final": final}, force, lambda run: evaluate(run, ws, cfg, device, final, seed),
+                        requires=("scene", "coarse", final))
+
+
+def evaluate(run: StageRun, ws: Workspace, cfg: EvalConfig, device: torch.device, final: str, seed: int) -> str:
+    scene = load_prepared(ws.stage_dir("scene"), load_test_images=True)
+    if not scene.test:
+        raise InputError("the scene has no test views: nothing to evaluate", ws.stage_dir("scene"))
+    frames = scene.test[: cfg.max_views] if cfg.max_views else scene.test
+    try:
+        lpips_fn, lpips_note = LPIPS(cfg.lpips_net, cfg.lpips_weights).to(device), None
+    except LpipsUnavailable as exc:
+        lpips_fn, lpips_note = None, str(exc)
+        log(f"eval: {exc}")
+    bg = background_for(scene)
+    t0 = time.perf_counter()
+    results, gain, pers = {}, None, {}
+    want_gain = cfg.repair_gain and final == "fine" and ws.manifest("finetune") is not None
+    members = None
+    for key, st in (("fine", final), ("coarse", "coarse")):
+        if key == "coarse" and final == "coarse":
+            results["coarse"] = results["fine"]
+            continue
+        if key == "coarse" and want_gain:  # G_c is the ensemble's first member: loaded once
+            members = coarse_members(ws, scene, device)
+            splats = members[0]
+        else:
+            splats, _ = load_checkpoint(ws.stage_dir(st) / CKPT, scene.norm, device)
+        out = run.path("renders", "x").parent if key == "fine" else None
+        per = evaluate_model(splats, frames, device, bg, lpips_fn, out, desc=f"eval {st}")
+        if key == "fine":
+            final_splats = splats  # the turntable renders it again, without a second load
+        atomic_write_json(run.path("per_view.json" if key == "fine" else "per_view_coarse.json"), per)
+        pers[key] = per
+        results[key] = {**summarise(per), "num_gaussians": int(splats["means"].shape[0]),
+                        "num_views": len(frames)}
+        if members is not None:
+            gain = measure_repair_gain(ws, members, frames, device, bg, seed)
+    if cfg.baseline:
+        b_splats, b_record = train_baseline(run, ws, scene, stage_times(ws), device, seed)
+        per = evaluate_model(b_splats, frames, device, bg, lpips_fn, desc="eval baseline")
+        results["baseline_3dgs"] = {**summarise(per), **b_record,
+                                    "num_gaussians": int(b_splats["means"].shape[0])}
+    res = {**results["fine"], "final_model": final, "coarse": results["coarse"],
+           "baseline_3dgs": results.get("baseline_3dgs"),
+           "repair_gain": gain,
+           "lpips_net": cfg.lpips_net if lpips_fn else None,
+           "lpips_unavailable": lpips_note, "metrics": METRICS_DOC,
+           "lpips_weights": lpips_fn.sources if lpips_fn else None,
+           "stage_times_s": {r["stage"]: r["wall_time_s"] for r in stage_times(ws)}}
+    source = ((ws.manifest("scene") or {}).get("summary") or {}).get("source")
+    res.update({"scene": source, "method": "wgs" if final == "fine" else "wgs-coarse-only",
+                "version": __version__, "seed": seed,
+                # the nerfstudio `ns-eval` layout, for tools that read it
+                "experiment_name": Path(str(source)).name if source else ws.root.name,
+                "method_name": "wgs", "checkpoint": str(ws.stage_dir(final) / CKPT),
+                "results": {k: results["fine"][k] for k in ("psnr", "psnr_std", "ssim", "ssim_std",
+                                                            "lpips", "lpips_std") if k in results["fine"]}})
+    # what error_vs_time.png shows: (cumulative s, probe-view PSNR) per training loop
+    res["curves"] = curve_points(ws, stage_times(ws), run.path("baseline", CURVE) if cfg.baseline else None)
+    atomic_write_json(run.path(RESULTS), res)
+    write_report(run, stage_times(ws), results["coarse"], results["fine"], time.perf_counter() - t0,
+                 lpips_note, res["curves"], results.get("baseline_3dgs"))
+    if cfg.turntable_frames > 0:
+        write_gif(run.path("turntable.gif"), [render_frame(final_splats, f, device, bg)[0].numpy()
+                                              for f in orbit_frames(scene.train, cfg.turntable_frames)])
+    write_html(run, ws, frames, bg, pers, results, time.perf_counter() - t0, lpips_note, gain)
+    run.record.update({"psnr": res["psnr"], "ssim": res["ssim"], "lpips": res["lpips"],
+                       "coarse_psnr": results["coarse"]["psnr"]})
     c, f = results["coarse"], results["fine"]
-    log(f"eval: PSNR {fmt(c['psnr'], 2)} -> {fmt(f['psnr'], 2)} dB, SSIM {fmt(c['ssim'])} -> {fmt(f['ssim'])}, "
-        f"LPIPS {fmt(c['lpips'])} -> {fmt(f['lpips'])} (coarse -> fine, {len(frames)} test views)")
+    lines = [f"eval: PSNR {fmt(c['psnr'], 2)} -> {fmt(f['psnr'], 2)} dB, SSIM {fmt(c['ssim'])} -> {fmt(f['ssim'])}, "
+             f"LPIPS {fmt(c['lpips'])} -> {fmt(f['lpips'])} (coarse -> fine, {len(frames)} test views)"]
     if results.get("baseline_3dgs") is not None:
         b = results["baseline_3dgs"]
-        log(f"eval: plain 3DGS for the same training time ({b['train_seconds']:.0f} s): PSNR {fmt(b['psnr'], 2)} dB, "
-            f"SSIM {fmt(b['ssim'])}")
+        lines.append(f"eval: plain 3DGS for the same training time ({b['train_seconds']:.0f} s): "
+                     f"PSNR {fmt(b['psnr'], 2)} dB, SSIM {fmt(b['ssim'])}")
     if gain is not None:
-        log(f"eval: repair gain at the test poses {gain['gain_db']:+.2f} dB (render {gain['psnr_render']:.2f} -> "
-            f"repaired {gain['psnr_repaired']:.2f} dB, {gain['views_improved']}/{gain['num_views']} views improved)")
-    return True
-
+        lines.append(f"eval: repair gain at the test poses {gain['gain_db']:+.2f} dB (render {gain['psnr_render']:.2f}"
+                     f" -> repaired {gain['psnr_repaired']:.2f} dB, {gain['views_improved']}/{gain['num_views']} "
+                     "views improved)")
+    return "\n".join(lines)
 
 __all__ = ["run_eval", "STAGE_DIRS"]
