@@ -87,14 +87,17 @@ def blender_views(src: Path):
 
 def to_colmap(src: Path, dst: Path) -> Path:
     """Write the Blender scene as a COLMAP scene (sparse/0 text model, images/, masks/)."""
+    import torch
+
+    from wgs.scene.camera import Camera
     from wgs.scene.colmap import write_model
 
     views = blender_views(src)
     for name, rgb, alpha, _, _ in views:
         write_png(dst / "images" / name, rgb)
         write_png(dst / "masks" / name, alpha)
-    write_model(dst / "sparse" / "0", [v[0] for v in views], [v[3] for v in views], [v[4] for v in views],
-                [(v[1].shape[1], v[1].shape[0]) for v in views])
+    write_model(dst / "sparse" / "0", {v[0]: Camera(torch.from_numpy(v[3]), torch.from_numpy(v[4]), v[1].shape[1],
+                                                   v[1].shape[0]) for v in views})
     return dst
 
 

@@ -1,4 +1,4 @@
-"""The Camera type: centre, JSON round trip, a Frame is a Camera plus images."""
+"""The Camera type: centre, JSON and COLMAP round trips, a Frame is a Camera plus images."""
 
 import dataclasses
 import json
@@ -32,3 +32,19 @@ def test_json_round_trip_and_frames_are_cameras():
     assert isinstance(f, Camera) and f.to_json() == cam.to_json()
     g2 = dataclasses.replace(f, image=torch.ones(30, 40, 3))
     assert g2.name == "a.png" and g2.K is f.K and float(g2.image.mean()) == 1.0
+
+
+def test_colmap_round_trip_and_pycolmap_projects_as_K_viewmat(tmp_path):
+    from wgs.scene.colmap import project_point, read_model, write_model
+
+    eye = np.array([0.7, -2.5, 1.3])
+    K = torch.tensor([[120.0, 0, 41.5], [0, 118.0, 29.25], [0, 0, 1]], dtype=torch.float64)
+    cam = Camera(K, torch.from_numpy(look_at(eye, np.zeros(3), np.array([0, 0, 1.0]))), 80, 60)
+    write_model(tmp_path, {"a.png": cam})
+    back = read_model(tmp_path)["a.png"]
+    assert (back.width, back.height) == (80, 60)
+    torch.testing.assert_close(back.K, cam.K, atol=1e-9, rtol=0)
+    torch.testing.assert_close(back.viewmat, cam.viewmat, atol=1e-9, rtol=0)
+    X = np.array([0.2, -0.1, 0.3])
+    x = (cam.K @ (cam.viewmat[:3, :3] @ torch.from_numpy(X) + cam.viewmat[:3, 3])).numpy()
+    np.testing.assert_allclose(project_point(tmp_path, "a.png", X), x[:2] / x[2], atol=1e-6)

@@ -1,4 +1,4 @@
-"""COLMAP models through pycolmap 4.x (the only module that imports pycolmap).
+"""COLMAP models through pycolmap 4.x, and the Camera <-> COLMAP conversion.
 
 Reads `sparse/0` or `sparse/` (binary or text), writes the workspace's normalised model as text,
 and undistorts images of non-pinhole camera models.
@@ -10,8 +10,10 @@ from pathlib import Path
 
 import numpy as np
 import pycolmap
+import torch
 
 from ..errors import InputError
+from .camera import Camera
 from .images import IMAGE_EXTS, find_with_stem
 from .paths import safe_join
 from .types import Distortion, RawScene, View
@@ -96,30 +98,36 @@ def undistort(img: np.ndarray, dist: Distortion, K: np.ndarray, width: int, heig
     return out, camera_K(new_cam), rest
 
 
-def write_model(model_dir: Path, names: list[str], Ks: list[np.ndarray], w2cs: list[np.ndarray],
-                sizes: list[tuple[int, int]]) -> None:
-    """Write a text COLMAP model (one PINHOLE camera per image) with pycolmap."""
+def camera_to_colmap(camera: Camera, camera_id: int) -> tuple[pycolmap.Camera, pycolmap.Rigid3d]:
+    """A PINHOLE COLMAP camera and the image's cam_from_world pose of `camera`."""
+    K, w2c = camera.K.double().numpy(), camera.viewmat.double().numpy()
+    cam = pycolmap.Camera(camera_id=camera_id, model="PINHOLE", width=int(camera.width), height=int(camera.height),
+                          params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+    return cam, pycolmap.Rigid3d(pycolmap.Rotation3d(w2c[:3, :3]), w2c[:3, 3])
+
+
+def camera_from_colmap(cam: pycolmap.Camera, image: pycolmap.Image) -> Camera:
+    """The Camera (float64) of a pinhole COLMAP camera and its image's pose."""
+    w2c = np.eye(4)
+    w2c[:3, :] = np.asarray(image.cam_from_world().matrix(), dtype=np.float64)
+    return Camera(torch.from_numpy(camera_K(cam)), torch.from_numpy(w2c), int(cam.width), int(cam.height))
+
+
+def write_model(model_dir: Path, cameras: dict[str, Camera]) -> None:
+    """Write a text COLMAP model (one PINHOLE camera per image, named by the keys) with pycolmap."""
     rec = pycolmap.Reconstruction()
-    for i, (name, K, w2c, (w, h)) in enumerate(zip(names, Ks, w2cs, sizes, strict=True), start=1):
-        cam = pycolmap.Camera(camera_id=i, model="PINHOLE", width=int(w), height=int(h),
-                              params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+    for i, (name, camera) in enumerate(cameras.items(), start=1):
+        cam, pose = camera_to_colmap(camera, i)
         rec.add_camera_with_trivial_rig(cam)
-        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(w2c[:3, :3]), w2c[:3, 3])
         rec.add_image_with_trivial_frame(pycolmap.Image(name=name, camera_id=i, image_id=i), pose)
     model_dir.mkdir(parents=True, exist_ok=True)
     rec.write_text(str(model_dir))
 
 
-def read_model(model_dir: Path) -> dict[str, tuple[np.ndarray, np.ndarray, int, int]]:
-    """{image name: (K [3,3], w2c [4,4], width, height)} of a model written by `write_model`."""
+def read_model(model_dir: Path) -> dict[str, Camera]:
+    """{image name: Camera} of a model written by `write_model`."""
     rec = read_reconstruction(model_dir)
-    out = {}
-    for im in rec.images.values():
-        cam = rec.cameras[im.camera_id]
-        w2c = np.eye(4)
-        w2c[:3, :] = np.asarray(im.cam_from_world().matrix(), dtype=np.float64)
-        out[im.name] = (camera_K(cam), w2c, int(cam.width), int(cam.height))
-    return out
+    return {im.name: camera_from_colmap(rec.cameras[im.camera_id], im) for im in rec.images.values()}
 
 
 def project_point(model_dir: Path, name: str, point: np.ndarray) -> np.ndarray:

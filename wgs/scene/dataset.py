@@ -66,9 +66,8 @@ def load_prepared(sdir: Path, load_test_images: bool = False) -> PreparedScene:
         for n in names:
             if n not in model:
                 raise InputError(f"image {n} is not in the COLMAP model", sdir / "sparse")
-            K, w2c, w, h = model[n]
-            f = Frame(torch.tensor(K, dtype=torch.float32), torch.tensor(w2c, dtype=torch.float32), w, h, name=n)
-            out.append(f)
+            c = model[n]
+            out.append(Frame(c.K.float(), c.viewmat.float(), c.width, c.height, name=n))
         return load_frame_images(sdir, out) if with_images else out
 
     return PreparedScene(info, Normalisation.from_json(info["normalisation"]),

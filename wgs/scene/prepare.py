@@ -11,10 +11,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from ..config import PrepareConfig
 from ..errors import InputError
 from ..io import atomic_write_bytes, atomic_write_json, path_in
+from .camera import Camera
 from .colmap import undistort, write_model
 from .convention import normalisation_from_cameras, orthonormalise, rotation_error, scale_intrinsics
 from .formats import read_scene
@@ -114,7 +116,7 @@ def prepare(scene: RawScene, cfg: PrepareConfig, out: Path) -> dict[str, Any]:
     """Write the workspace scene folder for `scene` into the stage's staging folder."""
     ids = {"train": scene.train, "test": scene.test}
     norm = normalisation_from_cameras([scene.views[i].w2c for i in scene.train])
-    names, Ks, w2cs, sizes = [], [], [], []
+    names, cameras, sizes = [], {}, []
     has_mask: dict[str, bool] = {}
     used = set()
     for split in ("train", "test"):
@@ -130,16 +132,17 @@ def prepare(scene: RawScene, cfg: PrepareConfig, out: Path) -> dict[str, Any]:
                 write_png(path_in(out, "masks", name), mask)
             has_mask[name] = mask is not None
             names.append(name)
-            Ks.append(K)
-            w2cs.append(norm.w2c_to_normalised(v.w2c))
             sizes.append((rgb.shape[1], rgb.shape[0]))
+            cameras[name] = Camera(torch.from_numpy(np.asarray(K, dtype=np.float64)),
+                                   torch.from_numpy(np.asarray(norm.w2c_to_normalised(v.w2c), dtype=np.float64)),
+                                   *sizes[-1])
     train_names = names[: len(scene.train)]
     test_names = names[len(scene.train):]
     masked = [has_mask[n] for n in train_names]
     if any(masked) and not all(masked):
         missing = train_names[masked.index(False)]
         raise InputError(f"some training views have masks but {missing} has none", scene.root)
-    write_model(path_in(out, "sparse", "cameras.txt").parent, names, Ks, w2cs, sizes)
+    write_model(path_in(out, "sparse", "cameras.txt").parent, cameras)
     atomic_write_bytes(path_in(out, "split_train.txt"), ("\n".join(train_names) + "\n").encode())
     atomic_write_bytes(path_in(out, "split_test.txt"), ("\n".join(test_names) + "\n").encode() if test_names else b"")
     res = sorted(set(sizes))
