@@ -128,11 +128,14 @@ def test_second_run_recomputes_nothing_and_fine_option_reruns_fine_and_eval(tiny
     assert changed == {"fine", "eval"}
     assert ws.manifest("fine")["iterations"] == 12 and ws.manifest("fine")["rounds"] == 1
     # a second round: the refined model's renders repaired again, trained on again
-    res = CliRunner().invoke(cli, ["-q", "--config", str(cfg2), "-w", str(ws.root), "fine", "--rounds", "2"],
-                             catch_exceptions=False)
+    # from G_c instead of the visual hull (a masked scene's default)
+    assert ws.manifest("fine")["start"] == "hull"
+    res = CliRunner().invoke(cli, ["-q", "--config", str(cfg2), "-w", str(ws.root), "fine", "--rounds", "2",
+                                   "--start", "coarse"], catch_exceptions=False)
     assert res.exit_code == 0, res.output
     m = ws.manifest("fine")
     assert m["rounds"] == 2 and m["iterations"] == 12 and math.isfinite(m["final_loss"])
+    assert m["start"] == "coarse"
 
 
 def test_left_out_without_masks_and_test_views(tiny, tmp_path):
@@ -148,7 +151,7 @@ def test_left_out_without_masks_and_test_views(tiny, tmp_path):
                              catch_exceptions=False)
     assert res.exit_code == 0, res.output
     ws = Workspace(tmp_path / "ws")
-    assert ws.manifest("fine") is not None
+    assert ws.manifest("fine")["start"] == "coarse"  # no masks, no visual hull: G_f starts from G_c
     # no test split in the dataset -> every 8th remaining view; here none remain, so no eval
     assert ws.manifest("eval") is None
     out = " ".join(res.output.split())

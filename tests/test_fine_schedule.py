@@ -1,7 +1,10 @@
-"""The fine stage's pseudo-view weight over the iterations."""
+"""The fine stage's pseudo-view weight over the iterations and the model it starts from."""
 
-from wgs.config import FineConfig
-from wgs.stages.s5_fine import pseudo_schedule
+import pytest
+
+from wgs.config import FineConfig, resolve
+from wgs.errors import InputError
+from wgs.stages.s5_fine import pseudo_schedule, start_of
 
 
 def test_default_keeps_pseudo_views_to_the_end():
@@ -14,3 +17,15 @@ def test_gaussianobject_schedule_ramps_then_stops():
     w = pseudo_schedule(FineConfig(iterations=1000, pseudo_weight_start=1.0, pseudo_weight_end=0.5, pseudo_until=0.7))
     assert w(0) == 1.0 and abs(w(350) - 0.75) < 1e-12 and abs(w(700) - 0.5) < 1e-12
     assert w(701) == 0.0
+
+
+def test_start_auto_is_the_hull_with_masks_else_g_c():
+    assert start_of(FineConfig(), has_masks=True) == "hull"
+    assert start_of(FineConfig(), has_masks=False) == "coarse"
+    assert start_of(FineConfig(start="coarse"), has_masks=True) == "coarse"
+    assert start_of(FineConfig(start="hull"), has_masks=False) == "hull"
+
+
+def test_unknown_start_is_refused():
+    with pytest.raises(InputError, match="'start' must be one of auto, coarse, hull"):
+        resolve("fine", None, {"fine": {"start": "scratch"}}, {})

@@ -101,13 +101,16 @@ def register(cli, stage_common, workspace_option) -> None:
                   help="Rounds of repair + refinement: each later one repairs the refined model's renders again.")
     @click.option("--lpips-weights", type=click.Path(path_type=str), default=None,
                   help="Folder with LPIPS weights for the pseudo views' LPIPS term (see eval).")
+    @click.option("--start", type=click.Choice(["auto", "coarse", "hull"]), default=None,
+                  help="Train G_f from the visual hull or from G_c (auto: the hull when the scene has masks).")
     @stage_common
     @click.pass_obj
-    def fine(obj, iterations, rounds, lpips_weights, force, preset):
-        """Refine G_c into G_f on the real and the pseudo references."""
+    def fine(obj, iterations, rounds, lpips_weights, start, force, preset):
+        """Train G_f on the real and the pseudo references."""
         from .stages.s5_fine import run_fine
 
-        cfg = obj.config("fine", preset, iterations=iterations, rounds=rounds, lpips_weights=lpips_weights)
+        cfg = obj.config("fine", preset, iterations=iterations, rounds=rounds, lpips_weights=lpips_weights,
+                         start=start)
         run_fine(obj.ws(), cfg, obj.torch_device(), obj.seed, force=force)
 
     @cli.command("eval")

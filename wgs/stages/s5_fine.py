@@ -1,4 +1,4 @@
-"""Stage 5: refine G_c into G_f on the real references plus the pseudo references."""
+"""Stage 5: G_f on the real references plus the pseudo references, trained from the visual hull or from G_c."""
 
 from __future__ import annotations
 
@@ -8,15 +8,15 @@ import torch
 
 from ..config import CKPT, PLY, VIEWS, FineConfig
 from ..curves import CURVE, test_probe, write_curve
-from ..gaussians.splats import VIEWER_SH_DEGREE, export_ply, load_checkpoint, save_checkpoint, to_world
+from ..gaussians.splats import VIEWER_SH_DEGREE, Splats, export_ply, load_checkpoint, save_checkpoint, to_world
 from ..gaussians.trainer import PseudoViews, train_gaussians
 from ..io import read_json
 from ..progress import log
 from ..scene.camera import Camera
-from ..scene.dataset import Frame, load_prepared
+from ..scene.dataset import Frame, PreparedScene, load_prepared
 from ..wavelet.exr import read_subbands
 from ..workspace import StageRun, Workspace
-from .shared import background_for, ensemble_repair, workspace_repairer
+from .shared import background_for, ensemble_repair, initial_splats, workspace_repairer
 
 
 def pseudo_schedule(cfg: FineConfig):
@@ -67,13 +67,28 @@ def lpips_for_training(cfg: FineConfig, device: torch.device):
     return fn, {"used": True, "weights": fn.sources}
 
 
+def start_of(cfg: FineConfig, has_masks: bool) -> str:
+    """Where G_f starts, "hull" or "coarse" (cfg.start with "auto" resolved)."""
+    if cfg.start != "auto":
+        return cfg.start
+    return "hull" if has_masks else "coarse"
+
+
+def starting_splats(ws: Workspace, scene: PreparedScene, cfg: FineConfig, seed: int) -> tuple[Splats, str]:
+    """The Gaussians the fine stage trains: the visual-hull init or G_c, and which it is."""
+    start = start_of(cfg, scene.has_masks)
+    if start == "hull":
+        return initial_splats(scene, cfg, seed), start
+    return load_checkpoint(ws.stage_dir("coarse") / CKPT, scene.norm)[0], start
+
+
 def run_fine(ws: Workspace, cfg: FineConfig, device: torch.device, seed: int, force: bool = False) -> bool:
     return ws.run_stage("fine", cfg, {"seed": seed}, force, lambda run: train_fine(run, ws, cfg, device, seed))
 
 
 def train_fine(run: StageRun, ws: Workspace, cfg: FineConfig, device: torch.device, seed: int) -> str:
     scene = load_prepared(ws.stage_dir("scene"))
-    splats, _ = load_checkpoint(ws.stage_dir("coarse") / CKPT, scene.norm)
+    splats, start = starting_splats(ws, scene, cfg, seed)
     frames, weights = load_pseudo_views(ws)
     bg = background_for(scene)
     lpips_fn, lpips_term = lpips_for_training(cfg, device)
@@ -98,6 +113,7 @@ def train_fine(run: StageRun, ws: Workspace, cfg: FineConfig, device: torch.devi
     save_checkpoint(run.path(CKPT), res.splats, scene.norm, res.iterations)
     n = export_ply(run.path(PLY), to_world(res.splats, scene.norm), VIEWER_SH_DEGREE)
     run.record.update({"num_gaussians": n, "iterations": res.iterations, "num_pseudo": len(frames),
-                       "rounds": max(1, cfg.rounds), "lpips_term": lpips_term,
+                       "rounds": max(1, cfg.rounds), "start": start, "lpips_term": lpips_term,
                        "train_seconds": round(res.seconds, 2), "final_loss": res.losses[-1], "seed": seed})
-    return f"fine: {n} Gaussians, {len(frames)} pseudo views, {res.seconds:.1f} s"
+    origin = "the visual hull" if start == "hull" else "G_c"
+    return f"fine: {n} Gaussians trained from {origin}, {len(frames)} pseudo views, {res.seconds:.1f} s"
