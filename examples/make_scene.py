@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from wgs.scene.images import write_png  # noqa: E402
+from wgs.io.images import write_png  # noqa: E402
 
 FOV_X = 0.6911112070083618  # NeRF-Synthetic's camera_angle_x
 RADIUS = 3.0

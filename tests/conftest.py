@@ -63,9 +63,9 @@ refine_every = 5
 
 from make_scene import make_scene  # noqa: E402
 
+from wgs.io.images import read_image, write_png  # noqa: E402
 from wgs.scene.convention import GL_TO_CV, invert_rigid  # noqa: E402
 from wgs.scene.formats import read_scene  # noqa: E402
-from wgs.scene.images import read_image, write_png  # noqa: E402
 from wgs.scene.orbit import look_at  # noqa: E402
 
 

@@ -7,10 +7,10 @@ from pathlib import Path
 
 import numpy as np
 
+from wgs.io.images import write_png
 from wgs.prior.meshes import concat
 from wgs.prior.procedural import _palette, fractal_noise, superquadric
 from wgs.prior.raster import render_rgba
-from wgs.scene.images import write_png
 from wgs.scene.orbit import look_at
 
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from conftest import expect_error, run_cli
 
-from wgs.scene.images import write_png
+from wgs.io.images import write_png
 
 
 def prep(scene, tmp_path, *extra):

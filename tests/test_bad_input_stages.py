@@ -17,7 +17,7 @@ from conftest import expect_error, make_scene, run_cli, to_idr
 
 from wgs.config import as_dict, load_config_file
 from wgs.context import Ctx
-from wgs.scene.images import read_image, write_png
+from wgs.io.images import read_image, write_png
 from wgs.workspace import Workspace
 
 

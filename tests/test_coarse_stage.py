@@ -7,7 +7,7 @@ from click.testing import CliRunner
 
 from wgs.cli import cli
 from wgs.gaussians.splats import import_ply, load_checkpoint
-from wgs.wavelet.exr import read_subbands
+from wgs.io.exr import read_subbands
 from wgs.wavelet.haar import dwt2
 from wgs.workspace import Workspace
 

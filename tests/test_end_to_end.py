@@ -139,7 +139,7 @@ def test_second_run_recomputes_nothing_and_fine_option_reruns_fine_and_eval(tiny
 
 
 def test_left_out_without_masks_and_test_views(tiny, tmp_path):
-    from wgs.scene.images import read_image, write_png
+    from wgs.io.images import read_image, write_png
 
     scene, cfg, _, _ = tiny
     d = tmp_path / "nomask"
@@ -187,7 +187,7 @@ def screenshots(urls: list[str], tmp_path, done=lambda url, shot: True) -> list:
     import time
 
     sync_playwright = pytest.importorskip("playwright.sync_api").sync_playwright
-    from wgs.scene.images import read_image
+    from wgs.io.images import read_image
 
     if chromium() is None:
         pytest.skip("Chromium is not installed (apt install chromium): no screenshots")

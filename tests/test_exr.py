@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from wgs.errors import InputError
-from wgs.wavelet.exr import read_subbands, write_subbands
+from wgs.io.exr import read_subbands, write_subbands
 
 
 def bands(rng, h=9, w=7, dtype=np.float32):

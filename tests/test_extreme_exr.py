@@ -7,7 +7,7 @@ Every case and its pass criterion is listed in docs/stability.md."""
 import numpy as np
 import pytest
 
-from wgs.wavelet.exr import read_subbands, write_subbands
+from wgs.io.exr import read_subbands, write_subbands
 
 
 def test_half_range_clamped_with_warning(tmp_path):

@@ -7,8 +7,8 @@ import torch
 from click.testing import CliRunner
 
 from wgs.cli import cli
+from wgs.io.exr import read_subbands
 from wgs.models.storage import load_model
-from wgs.wavelet.exr import read_subbands
 from wgs.workspace import Workspace
 
 TRAIN = ["--preset", "fast", "--iterations", "40"]

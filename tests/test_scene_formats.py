@@ -6,12 +6,12 @@ from click.testing import CliRunner
 
 from wgs.cli import cli
 from wgs.io import read_json
+from wgs.io.images import downscale
 from wgs.scene.colmap import project_point
 from wgs.scene.convention import Normalisation
 from wgs.scene.dataset import load_prepared
 from wgs.scene.formats import read_scene
 from wgs.scene.idr import decompose_projection
-from wgs.scene.images import downscale
 from wgs.workspace import Workspace
 
 
@@ -137,7 +137,7 @@ def test_colmap_distorted_is_undistorted(scene_formats, tmp_path):
 def test_colmap_uses_images_k(scene_formats, tmp_path):
     import shutil
 
-    from wgs.scene.images import read_image, write_png
+    from wgs.io.images import read_image, write_png
 
     d = tmp_path / "colmap"
     shutil.copytree(scene_formats["colmap"], d)

@@ -11,9 +11,9 @@ from conftest import expect_error, ring_w2c, run_cli
 from photo_scene import make_photos
 
 from wgs.errors import InputError
+from wgs.io.images import read_image, write_png
 from wgs.scene.colmap import read_colmap_scene
 from wgs.scene.formats import detect_format, read_scene
-from wgs.scene.images import read_image, write_png
 from wgs.scene.llff import llff_to_w2c
 from wgs.scene.pose_error import pose_errors, umeyama
 from wgs.scene.sfm import find_photos, pose_photos

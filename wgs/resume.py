@@ -12,7 +12,6 @@ a second Ctrl-C stops at once (the last periodic checkpoint stays).
 from __future__ import annotations
 
 import contextlib
-import io
 import signal
 import threading
 import time
@@ -23,7 +22,7 @@ from typing import Any
 import torch
 
 from .errors import WgsError
-from .io import atomic_write_bytes
+from .io.checkpoint import UnreadableCheckpoint, read_checkpoint, write_checkpoint
 
 
 class Interrupted(WgsError):
@@ -44,18 +43,16 @@ class Checkpointer:
         if not self.resume or not self.path.exists():
             return None
         try:
-            return torch.load(self.path, map_location="cpu", weights_only=True)
-        except Exception as exc:  # noqa: BLE001 - torch raises many types for a damaged file
-            raise WgsError(f"cannot read the resume checkpoint ({type(exc).__name__}); "
+            return read_checkpoint(self.path)
+        except UnreadableCheckpoint as exc:
+            raise WgsError(f"cannot read the resume checkpoint ({str(exc).split(':')[0]}); "
                            "rerun without --resume to start the stage over", self.path) from None
 
     def due(self) -> bool:
         return time.monotonic() - self._last >= self.every_s
 
     def save(self, state: dict[str, Any]) -> None:
-        buf = io.BytesIO()
-        torch.save(state, buf)
-        atomic_write_bytes(self.path, buf.getvalue())
+        write_checkpoint(self.path, state)
         self._last = time.monotonic()
 
 

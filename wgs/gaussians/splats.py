@@ -8,7 +8,6 @@ normalised world (`Normalisation`), converted on load and save.
 
 from __future__ import annotations
 
-import io
 import math
 from pathlib import Path
 from typing import Any
@@ -17,7 +16,8 @@ import numpy as np
 import torch
 
 from ..errors import InputError
-from ..io import atomic_write_bytes
+from ..io.checkpoint import UnreadableCheckpoint, read_checkpoint, write_checkpoint
+from ..io.ply import read_ply, write_ply
 from ..scene.convention import Normalisation
 from .sh import num_sh_bases, rgb_to_sh0
 
@@ -76,11 +76,8 @@ def save_checkpoint(path: Path, splats: Splats, norm: Normalisation, step: int, 
                     ) -> None:
     """Atomic `{"step", "splats", "version", "normalisation", ...}` in world coordinates."""
     world = {k: v.detach().cpu().contiguous() for k, v in to_world(splats, norm).items()}
-    blob = {"version": CHECKPOINT_VERSION, "step": int(step), "splats": world,
-            "normalisation": norm.to_json(), **(extra or {})}
-    buf = io.BytesIO()
-    torch.save(blob, buf)
-    atomic_write_bytes(path, buf.getvalue())
+    write_checkpoint(path, {"version": CHECKPOINT_VERSION, "step": int(step), "splats": world,
+                            "normalisation": norm.to_json(), **(extra or {})})
 
 
 def load_checkpoint(path: Path, norm: Normalisation | None = None, device: torch.device | str = "cpu"
@@ -90,9 +87,9 @@ def load_checkpoint(path: Path, norm: Normalisation | None = None, device: torch
     if not path.is_file():
         raise InputError("checkpoint not found", path)
     try:
-        blob = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # truncated zip, pickle payload refused by weights_only, ...
-        raise InputError(f"not a valid wgs checkpoint ({str(exc).splitlines()[0][:200]})", path) from None
+        blob = read_checkpoint(path)
+    except UnreadableCheckpoint as exc:  # truncated zip, pickle payload refused by weights_only, ...
+        raise InputError(f"not a valid wgs checkpoint ({exc})", path) from None
     if not isinstance(blob, dict) or not isinstance(blob.get("splats"), dict):
         raise InputError("not a wgs checkpoint (no 'splats' table)", path)
     if blob.get("version") != CHECKPOINT_VERSION:
@@ -140,10 +137,7 @@ def export_ply(path: Path, splats: Splats, pad_to_degree: int | None = None) -> 
             sp["opacities"][:, None], sp["scales"], sp["quats"]]
     data = torch.cat(cols, dim=1).numpy().astype("<f4")
     data = data[np.isfinite(data).all(axis=1)]
-    names = ply_attributes(deg)
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(data)}"]
-    header += [f"property float {a}" for a in names] + ["end_header"]
-    atomic_write_bytes(path, ("\n".join(header) + "\n").encode("ascii") + data.tobytes())
+    write_ply(path, ply_attributes(deg), data)
     return len(data)
 
 
@@ -183,31 +177,13 @@ def splat_bytes(splats: Splats, rotation: torch.Tensor | None = None, translatio
 
 def import_ply(path: Path) -> Splats:
     """Read a 3DGS PLY (binary little endian, float32 properties) into raw splats."""
-    path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise InputError(f"cannot read PLY ({exc.strerror})", path) from None
-    end = raw.find(b"end_header\n")
-    if not raw.startswith(b"ply") or end < 0:
-        raise InputError("not a PLY file", path)
-    lines = raw[:end].decode("ascii", "replace").splitlines()
-    if "format binary_little_endian 1.0" not in lines:
-        raise InputError("only binary little-endian PLY is supported", path)
-    n = next((int(ln.split()[2]) for ln in lines if ln.startswith("element vertex")), None)
-    props = [ln.split() for ln in lines if ln.startswith("property")]
-    if n is None or any(p[1] != "float" for p in props):
-        raise InputError("expected 'element vertex' with float properties", path)
-    names = [p[2] for p in props]
-    body = raw[end + len(b"end_header\n"):]
-    if len(body) < n * 4 * len(names):
-        raise InputError(f"truncated: {len(body)} bytes for {n} vertices", path)
-    arr = np.frombuffer(body, dtype="<f4", count=n * len(names)).reshape(n, len(names))
+    names, arr = read_ply(path)
+    n = len(arr)
     col = {name: i for i, name in enumerate(names)}
     n_rest = sum(1 for x in names if x.startswith("f_rest_"))
     needed = ["x", "y", "z", "f_dc_0", "opacity", "scale_0", "rot_0"]
     if any(x not in col for x in needed) or n_rest % 3 or math.isqrt(n_rest // 3 + 1) ** 2 != n_rest // 3 + 1:
-        raise InputError("not a 3DGS PLY (missing attributes or an SH count that is no degree)", path)
+        raise InputError("not a 3DGS PLY (missing attributes or an SH count that is no degree)", Path(path))
 
     def take(keys: list[str]) -> torch.Tensor:
         return torch.from_numpy(np.ascontiguousarray(arr[:, [col[k] for k in keys]]))

@@ -39,7 +39,7 @@ def load_pairs(folder: Path, domain: str, levels: int = 1) -> tuple[torch.Tensor
 
     wavelet: the LL subband at `levels` (level 1 from the stored LL pairs, deeper levels from the
     stored RGB pairs); rgb: the images. `folder`: what `wgs mask-data` wrote (index.json, pairs/)."""
-    from ..wavelet.exr import read_subbands  # OpenImageIO only where pair files are read
+    from ..io.exr import read_subbands  # OpenImageIO only where pair files are read
 
     index_path = folder / INDEX
     index = read_json(index_path)

@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..io.images import write_png
 from ..progress import log
-from ..scene.images import write_png
 from .meshes import Mesh, load_mesh, normalise, y_up_to_z_up
 from .procedural import random_rotation, random_shape, random_texture
 from .raster import render_rgba

@@ -13,8 +13,8 @@ import pycolmap
 import torch
 
 from ..errors import InputError
+from ..io.images import IMAGE_EXTS, find_with_stem
 from .camera import Camera
-from .images import IMAGE_EXTS, find_with_stem
 from .paths import safe_join
 from .types import Distortion, RawScene, View
 

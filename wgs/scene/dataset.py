@@ -9,10 +9,10 @@ import torch
 
 from ..errors import InputError
 from ..io import read_json
+from ..io.images import read_image
 from .camera import Camera
 from .colmap import read_model
 from .convention import Normalisation
-from .images import read_image
 
 
 @dataclass(kw_only=True)

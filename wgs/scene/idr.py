@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from .images import IMAGE_EXTS, image_size
+from ..io.images import IMAGE_EXTS, image_size
 from .types import RawScene, View
 
 

@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..io.images import IMAGE_EXTS, find_with_stem, image_size
 from .convention import intrinsics
-from .images import IMAGE_EXTS, find_with_stem, image_size
 from .types import RawScene, View
 
 POSES = "poses_bounds.npy"

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..errors import InputError
-from .images import IMAGE_EXTS
+from ..io.images import IMAGE_EXTS
 
 
 def safe_join(root: Path, rel: str, source: Path) -> Path:

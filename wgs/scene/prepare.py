@@ -16,11 +16,11 @@ import torch
 from ..config import PrepareConfig
 from ..errors import InputError
 from ..io import atomic_write_bytes, atomic_write_json, path_in
+from ..io.images import downscale, read_image, split_rgba, to_mask, write_png
 from .camera import Camera
 from .colmap import undistort, write_model
 from .convention import normalisation_from_cameras, orthonormalise, rotation_error, scale_intrinsics
 from .formats import read_scene
-from .images import downscale, read_image, split_rgba, to_mask, write_png
 from .splits import choose_split
 from .types import RawScene, View
 

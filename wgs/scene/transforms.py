@@ -9,8 +9,8 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from ..io.images import image_size
 from .convention import c2w_opengl_to_w2c_opencv, focal_from_fov, intrinsics
-from .images import image_size
 from .paths import resolve_image, safe_join
 from .types import Distortion, RawScene, View
 

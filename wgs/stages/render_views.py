@@ -8,9 +8,9 @@ from ..config import CKPT
 from ..errors import InputError
 from ..gaussians.splats import load_checkpoint
 from ..gaussians.trainer import render_frame
+from ..io.images import write_gif, write_png
 from ..progress import log
 from ..scene.dataset import load_prepared
-from ..scene.images import write_gif, write_png
 from ..scene.orbit import orbit_frames
 from ..workspace import Workspace
 from .shared import background_for

@@ -11,11 +11,11 @@ from ..curves import CURVE, test_probe, write_curve
 from ..gaussians.splats import VIEWER_SH_DEGREE, Splats, export_ply, save_checkpoint, to_world
 from ..gaussians.trainer import render_frame, train_gaussians
 from ..io import atomic_write_json
+from ..io.exr import write_subbands
+from ..io.images import write_png
 from ..metrics import psnr
 from ..progress import log
 from ..scene.dataset import PreparedScene, composite, load_prepared
-from ..scene.images import write_png
-from ..wavelet.exr import write_subbands
 from ..workspace import StageRun, Workspace
 from .shared import background_for, initial_splats, member_checkpoint, subbands_hwc
 

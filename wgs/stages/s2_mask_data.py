@@ -20,9 +20,9 @@ from ..errors import InputError
 from ..gaussians.splats import Splats
 from ..gaussians.trainer import render_frame, train_gaussians
 from ..io import atomic_write_json, read_json
+from ..io.exr import write_subbands
 from ..masking import make_region_masks
 from ..scene.dataset import PreparedScene, composite, load_prepared
-from ..wavelet.exr import write_subbands
 from ..workspace import STAGE_DIRS, StageRun, Workspace
 from .shared import background_for, initial_splats, subbands_hwc
 

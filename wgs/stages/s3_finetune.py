@@ -13,6 +13,7 @@ import torch
 from ..config import INDEX, FinetuneConfig
 from ..errors import InputError
 from ..io import atomic_write_json, read_json
+from ..io.exr import read_subbands
 from ..metrics import psnr
 from ..models.data import hwc, load_pairs, random_crops
 from ..models.hf_unet import HFUNet, HFUNetConfig
@@ -25,7 +26,6 @@ from ..prior import WEIGHTS as PRIOR_WEIGHTS
 from ..progress import progress_bar
 from ..resume import Checkpointer, check_interrupt, deferred_sigint, rng_state, set_rng_state
 from ..threads import adapt as adapt_threads
-from ..wavelet.exr import read_subbands
 from ..wavelet.haar import dwt2, idwt2, stack_highs
 from ..workspace import StageRun, Workspace
 

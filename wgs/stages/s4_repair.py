@@ -12,11 +12,11 @@ import torch
 
 from ..config import VIEWS, RepairConfig
 from ..io import atomic_write_json
+from ..io.exr import write_subbands
+from ..io.images import write_png
 from ..models.repair import load_repairer
 from ..scene.dataset import load_prepared
-from ..scene.images import write_png
 from ..scene.orbit import novel_views, sphere_views
-from ..wavelet.exr import write_subbands
 from ..workspace import StageRun, Workspace
 from .shared import background_for, coarse_members, ensemble_repair
 

@@ -11,10 +11,10 @@ from ..curves import CURVE, test_probe, write_curve
 from ..gaussians.splats import VIEWER_SH_DEGREE, Splats, export_ply, load_checkpoint, save_checkpoint, to_world
 from ..gaussians.trainer import PseudoViews, train_gaussians
 from ..io import read_json
+from ..io.exr import read_subbands
 from ..progress import log
 from ..scene.camera import Camera
 from ..scene.dataset import Frame, PreparedScene, load_prepared
-from ..wavelet.exr import read_subbands
 from ..workspace import StageRun, Workspace
 from .shared import background_for, ensemble_repair, initial_splats, workspace_repairer
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import statistics
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -18,11 +19,11 @@ from ..errors import InputError
 from ..gaussians.splats import load_checkpoint, save_checkpoint
 from ..gaussians.trainer import render_frame, train_gaussians
 from ..io import atomic_write_bytes, atomic_write_json
+from ..io.images import write_gif, write_png
 from ..lpips import LPIPS, LpipsUnavailable
 from ..metrics import psnr, ssim
 from ..progress import log, progress_bar
-from ..scene.dataset import composite, load_prepared
-from ..scene.images import write_gif, write_png
+from ..scene.dataset import Frame, composite, load_prepared
 from ..scene.orbit import orbit_frames
 from ..workspace import STAGE_DIRS, StageRun, Workspace
 from .shared import background_for, coarse_members, ensemble_repair, initial_splats, workspace_repairer
@@ -34,7 +35,11 @@ METRICS_DOC = {
 }
 
 
-def evaluate_model(splats, frames, device, bg, lpips_fn, out_dir=None, desc="eval") -> dict[str, dict[str, float]]:
+def evaluate_model(splats, frames, device, bg, lpips_fn, out_dir=None, desc="eval",
+                   on_view: Callable[[Frame, torch.Tensor, torch.Tensor], None] | None = None
+                   ) -> dict[str, dict[str, float]]:
+    """Per-view PSNR / SSIM (/ LPIPS) of `splats` at `frames`; `on_view(frame, render, truth)` sees
+    each render too (the repair gain reuses G_c's instead of rendering it again)."""
     per: dict[str, dict[str, float]] = {"psnr": {}, "ssim": {}, "lpips": {}}
     with progress_bar(desc, len(frames)) as prog:
         for i, f in enumerate(frames):
@@ -48,29 +53,36 @@ def evaluate_model(splats, frames, device, bg, lpips_fn, out_dir=None, desc="eva
                                                           ref.permute(2, 0, 1)[None].to(device)))
             if out_dir is not None:
                 write_png(out_dir / f.name, rgb.numpy())
+            if on_view is not None:
+                on_view(f, rgb, ref)
             prog.update(0, completed=i + 1)
     if lpips_fn is None:
         del per["lpips"]
     return per
 
 
-def measure_repair_gain(ws: Workspace, members, frames, device, bg, seed: int) -> dict[str, Any]:
+class RepairGain:
     """PSNR of G_c's render and of the pseudo reference `wgs repair` makes at the same camera (the
     ensemble's renders repaired by D + U, averaged) against the truth at the test poses: how much
-    the repair itself fixes, before any 3D training on it."""
-    repairer = workspace_repairer(ws, device, seed)
-    before, after = {}, {}
-    with progress_bar("eval repair gain", len(frames)) as prog:
-        for i, f in enumerate(frames):
-            rgb, fixed, _, _ = ensemble_repair(members, f, bg, repairer, device)
-            ref = composite(f.image, f.mask, bg)
-            before[f.name], after[f.name] = psnr(rgb, ref), psnr(fixed, ref)
-            prog.update(0, completed=i + 1)
-    gains = [after[k] - before[k] for k in before]
-    return {"psnr_render": statistics.fmean(before.values()), "psnr_repaired": statistics.fmean(after.values()),
-            "gain_db": statistics.fmean(gains), "gain_std": statistics.pstdev(gains),
-            "views_improved": sum(g > 0 for g in gains), "num_views": len(gains), "prior": repairer.d_cfg.get("prior"),
-            "ensemble": len(members)}
+    the repair itself fixes, before any 3D training on it. Called per view with G_c's render."""
+
+    def __init__(self, ws: Workspace, members, device, bg, seed: int):
+        self.members, self.device, self.bg = members, device, bg
+        self.repairer = workspace_repairer(ws, device, seed)
+        self.before: dict[str, float] = {}
+        self.after: dict[str, float] = {}
+
+    def __call__(self, frame: Frame, render: torch.Tensor, truth: torch.Tensor) -> None:
+        _, fixed, _, _ = ensemble_repair(self.members, frame, self.bg, self.repairer, self.device, first_render=render)
+        self.before[frame.name], self.after[frame.name] = psnr(render, truth), psnr(fixed, truth)
+
+    def summary(self) -> dict[str, Any]:
+        gains = [self.after[k] - self.before[k] for k in self.before]
+        return {"psnr_render": statistics.fmean(self.before.values()),
+                "psnr_repaired": statistics.fmean(self.after.values()),
+                "gain_db": statistics.fmean(gains), "gain_std": statistics.pstdev(gains),
+                "views_improved": sum(g > 0 for g in gains), "num_views": len(gains),
+                "prior": self.repairer.d_cfg.get("prior"), "ensemble": len(self.members)}
 
 
 def summarise(per: dict[str, dict[str, float]]) -> dict[str, float | None]:
@@ -169,8 +181,8 @@ def plot_error_vs_time(path, times, coarse, fine, curves: dict[str, list[tuple[f
 def write_html(run: StageRun, ws: Workspace, frames, bg, pers: dict, results: dict, eval_s: float,
                lpips_note: str | None, gain: dict | None) -> None:
     """report.html beside report.md: the same table plus the views and sheets (wgs/report_html.py)."""
+    from ..io.images import read_image
     from ..report_html import error_sheet, worst_and_best, write_report_html
-    from ..scene.images import read_image
 
     per_fine = pers.get("fine") or pers.get("coarse") or {"psnr": {}, "ssim": {}}
     by_name = {f.name: f for f in frames}
@@ -250,26 +262,27 @@ def evaluate(run: StageRun, ws: Workspace, cfg: EvalConfig, device: torch.device
     t0 = time.perf_counter()
     results, gain, pers = {}, None, {}
     want_gain = cfg.repair_gain and final == "fine" and ws.manifest("finetune") is not None
-    members = None
+    repair_gain = None
     for key, st in (("fine", final), ("coarse", "coarse")):
         if key == "coarse" and final == "coarse":
             results["coarse"] = results["fine"]
             continue
-        if key == "coarse" and want_gain:  # G_c is the ensemble's first member: loaded once
+        if key == "coarse" and want_gain:  # G_c is the ensemble's first member: loaded and rendered once
             members = coarse_members(ws, scene, device)
-            splats = members[0]
+            splats, repair_gain = members[0], RepairGain(ws, members, device, bg, seed)
         else:
             splats, _ = load_checkpoint(ws.stage_dir(st) / CKPT, scene.norm, device)
         out = run.path("renders", "x").parent if key == "fine" else None
-        per = evaluate_model(splats, frames, device, bg, lpips_fn, out, desc=f"eval {st}")
+        per = evaluate_model(splats, frames, device, bg, lpips_fn, out, on_view=repair_gain,
+                             desc=f"eval {st}" + (" and the repair gain" if repair_gain else ""))
         if key == "fine":
             final_splats = splats  # the turntable renders it again, without a second load
         atomic_write_json(run.path("per_view.json" if key == "fine" else "per_view_coarse.json"), per)
         pers[key] = per
         results[key] = {**summarise(per), "num_gaussians": int(splats["means"].shape[0]),
                         "num_views": len(frames)}
-        if members is not None:
-            gain = measure_repair_gain(ws, members, frames, device, bg, seed)
+        if repair_gain is not None:
+            gain = repair_gain.summary()
     if cfg.baseline:
         b_splats, b_record = train_baseline(run, ws, scene, stage_times(ws), device, seed)
         per = evaluate_model(b_splats, frames, device, bg, lpips_fn, desc="eval baseline")

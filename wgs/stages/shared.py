@@ -71,19 +71,22 @@ def workspace_repairer(ws, device: torch.device, seed: int) -> Repairer:
 
 @torch.no_grad()
 def ensemble_repair(members: list[Splats], frame: Frame, background: torch.Tensor, repairer: Repairer,
-                    device: torch.device) -> tuple[torch.Tensor, torch.Tensor, dict, dict]:
+                    device: torch.device, first_render: torch.Tensor | None = None
+                    ) -> tuple[torch.Tensor, torch.Tensor, dict, dict]:
     """The pseudo reference at one camera: every member's render repaired by D and U, averaged.
 
     Member k's D sees its render under its own symmetries of the square (k * n .. k * n + n - 1 for
     n = repairer.symmetries): D's errors then differ between members too (lego, 4 views, 40 test
     poses, 4 models: 20.57 dB with D on every render as it is, 20.63 with a flip or transpose each).
-    Returns the first member's render [H, W, 3], the reference [H, W, 3], and the corrupted
+    `first_render`: the first member's render when the caller has it. Returns that render [H, W, 3],
+    the reference [H, W, 3], and the corrupted
     (first render) and repaired (reference) subbands as `repair_image` names them."""
     domain, levels = repairer.d_cfg.get("domain", "wavelet"), repairer.d_cfg.get("levels", 1)
     n = repairer.symmetries
     fixed = []
     for k, splats in enumerate(members):
-        render, _ = render_frame(splats, frame, device, background)
+        render = first_render if k == 0 and first_render is not None else render_frame(splats, frame, device,
+                                                                                       background)[0]
         fn = symmetrized(repairer.fn, n, first=k * n)
         out, bands_in_k, bands_out = repair_image(render, fn, repairer.U, domain, device, levels)
         if k == 0:

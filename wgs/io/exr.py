@@ -13,7 +13,7 @@ import numpy as np
 import OpenImageIO as oiio
 
 from ..errors import InputError
-from ..scene.images import oiio_path, write_with_oiio
+from .images import oiio_path, write_with_oiio
 
 HALF_MAX = 65504.0
 RGB = ("R", "G", "B")

@@ -10,7 +10,7 @@ import numpy as np
 import OpenImageIO as oiio
 
 from ..errors import InputError
-from ..io import atomic_path
+from .files import atomic_path
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff", ".bmp", ".webp")
 
