@@ -45,7 +45,7 @@ class Checkpointer:
         try:
             return read_checkpoint(self.path)
         except UnreadableCheckpoint as exc:
-            raise WgsError(f"cannot read the resume checkpoint ({str(exc).split(':')[0]}); "
+            raise WgsError(f"cannot read the resume checkpoint ({exc}); "
                            "rerun without --resume to start the stage over", self.path) from None
 
     def due(self) -> bool:

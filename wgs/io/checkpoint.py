@@ -27,5 +27,5 @@ def read_checkpoint(path: str | Path) -> Any:
     try:
         return torch.load(Path(path), map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - torch raises many types for a damaged file
-        raise UnreadableCheckpoint(f"{type(exc).__name__}: {str(exc).splitlines()[0][:200] if str(exc) else ''}"
-                                   ) from None
+        first_line = (str(exc).splitlines() or [""])[0][:200]
+        raise UnreadableCheckpoint(f"{type(exc).__name__}: {first_line}") from None

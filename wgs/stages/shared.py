@@ -26,7 +26,7 @@ def initial_splats(scene: PreparedScene, cfg: TrainConfig, seed: int) -> Splats:
         except InputError as exc:  # name the scene the user gave, whose masks and poses are at fault
             raise InputError(exc.message, scene.info.get("source")) from None
     else:
-        log("coarse: no masks -> no visual hull, no mask loss, no random background (random init)")
+        log("no masks -> no visual hull, no mask loss, no random background (random init)")
         pts, cols = random_init(cfg.init_points, generator=gen)
     scales = knn_mean_distance(pts, 3).clamp(1e-4, 0.05)
     return create_splats(pts, cols, scales, cfg.sh_degree)
