@@ -10,6 +10,7 @@ from wgs.gaussians.splats import load_checkpoint
 from wgs.gaussians.trainer import render_frame
 from wgs.models.repair import Repairer
 from wgs.scene.dataset import load_prepared
+from wgs.stages import s1_coarse
 from wgs.stages.shared import coarse_members, ensemble_repair, member_checkpoint
 from wgs.workspace import Workspace
 
@@ -67,3 +68,28 @@ def test_ensemble_below_one_is_refused(blender_scene, tmp_path):
     cfg.write_text("[coarse]\nensemble = 0\n")
     expect_error(tmp_path, ["--config", cfg, "-w", ws, "coarse", *TINY], "'ensemble' must be at least 1")
     assert not (ws / "1_coarse" / "manifest.json").exists()
+
+
+def test_models_side_by_side_equal_the_one_thread_ones_in_order(blender_scene, tmp_path, monkeypatch):
+    """Training the models in one-thread processes changes where they run, not what they are."""
+    serial, side = Workspace(tmp_path / "serial"), Workspace(tmp_path / "side")
+    for ws in (serial, side):
+        invoke("-w", ws.root, "prepare", blender_scene)
+    invoke("--threads", "1", "-w", serial.root, "coarse", *TINY, "--ensemble", "3")
+    monkeypatch.setattr(s1_coarse, "side_by_side", lambda cfg, device, pixels: 2)
+    invoke("-w", side.root, "coarse", *TINY, "--ensemble", "3")  # (also resets the thread count)
+    assert serial.manifest("coarse")["side_by_side"] == 1 and side.manifest("coarse")["side_by_side"] == 2
+    for name in (CKPT, member_checkpoint(1), member_checkpoint(2)):
+        a = load_checkpoint(serial.stage_dir("coarse") / name)[0]
+        b = load_checkpoint(side.stage_dir("coarse") / name)[0]
+        assert all(torch.equal(a[k], b[k]) for k in a), name
+    assert (side.stage_dir("coarse") / "curve.json").is_file() == (serial.stage_dir("coarse") / "curve.json").is_file()
+
+
+def test_side_by_side_only_on_the_cpu_and_for_work_worth_a_process():
+    cfg = s1_coarse.CoarseConfig(iterations=1500, ensemble=8)
+    lego = 200 * 200
+    assert s1_coarse.side_by_side(cfg, torch.device("cpu"), lego) == min(8, s1_coarse.configured_count())
+    assert s1_coarse.side_by_side(cfg, torch.device("cuda"), lego) == 1
+    assert s1_coarse.side_by_side(s1_coarse.CoarseConfig(iterations=30, ensemble=2), torch.device("cpu"), 64 * 64) == 1
+    assert s1_coarse.side_by_side(s1_coarse.CoarseConfig(iterations=1500, ensemble=1), torch.device("cpu"), lego) == 1

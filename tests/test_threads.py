@@ -117,3 +117,57 @@ def test_cli_threads_option(tmp_path):
                          capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
     assert "threads: torch 1, numba 1" in out.stdout and "fixed" in out.stdout
+
+
+def test_jobs_in_processes_come_back_by_index_with_one_thread_each():
+    jobs = [(f"{i}",) for i in range(5)]
+    out = dict(threads.map_in_processes(int, jobs, 2))
+    assert out == {i: i for i in range(5)}
+    # the children run one thread each, and the parent's environment is left as it was
+    before = {k: os.environ.get(k) for k in (threads.ENV, *threads.COUNT_VARS)}
+    code = "import torch; print(torch.get_num_threads())"
+    got = dict(threads.map_in_processes(subprocess.check_output, [([sys.executable, "-c", code],)] * 2, 2))
+    assert {int(v) for v in got.values()} == {1}
+    assert {k: os.environ.get(k) for k in before} == before
+
+
+def test_in_process_when_one_worker_and_a_child_error_reaches_the_parent():
+    assert list(threads.map_in_processes(int, [("7",), ("8",)], 1)) == [(0, 7), (1, 8)]
+    with pytest.raises(ValueError, match="invalid literal"):
+        dict(threads.map_in_processes(int, [("1",), ("x",)], 2))
+
+
+def proc_stat(pid: int) -> list[str] | None:
+    """state, ppid, ... of a live process (None when gone or a zombie)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+    return None if fields[0] in ("Z", "X") else fields
+
+
+def children_of(pid: int) -> list[int]:
+    return [int(p) for p in os.listdir("/proc") if p.isdigit() and (st := proc_stat(int(p))) and int(st[1]) == pid]
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc"), reason="reads children from /proc")
+def test_children_leave_when_their_parent_is_killed():
+    import signal
+    import time
+
+    parent = subprocess.Popen([sys.executable, "-c", "import time, wgs.threads as t\n"
+                               "print('go', flush=True)\n"
+                               "dict(t.map_in_processes(time.sleep, [(60,), (60,)], 2))"],
+                              stdout=subprocess.PIPE, text=True)
+    assert parent.stdout.readline().strip() == "go"
+    deadline = time.monotonic() + 60
+    while len(kids := children_of(parent.pid)) < 2 and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert len(kids) >= 2
+    parent.send_signal(signal.SIGKILL)
+    parent.wait()
+    deadline = time.monotonic() + 20
+    while any(proc_stat(k) for k in kids) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not any(proc_stat(k) for k in kids), "the pool's children outlived their killed parent"

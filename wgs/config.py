@@ -77,8 +77,9 @@ class CoarseConfig(CurveConfig, TrainConfig):
     # averages their repaired renders: their sparse-view artifacts differ, the object does not
     # (lego, 4 views, 40 test poses: one render 19.20 dB, the mean of 4 repaired renders 20.49;
     # G_f 20.25 / 20.32 dB with 4 / 6 models; with a pseudo weight of 2 and 2000 fine iterations
-    # 20.48 / 20.57 with 6 / 8; 50-60 s each)
-    ensemble: int = 8
+    # 20.48 / 20.57 with 6 / 8; `wgs all` end to end 20.54 / 20.58 / 20.57 with 8 / 10 / 12; 48 s
+    # each alone, 64 s each two side by side in one-thread processes, see s1_coarse.side_by_side)
+    ensemble: int = 10
 
 
 @dataclass
@@ -162,7 +163,9 @@ class LpipsWeightsConfig:
 class FineConfig(LpipsWeightsConfig, CurveConfig, TrainConfig):
     """Refinement of G_c on the real and the pseudo references."""
 
-    iterations: int = 1500
+    # from the hull on lego's 12-model references: 1500 iterations 20.575 dB in 89 s, 2500 20.609 in
+    # 168 s (session 9, 8 models: 20.538 / 20.585)
+    iterations: int = 2500
     refine_start: int = 100
     refine_stop: int = 1000
     # where G_f starts: "hull" trains afresh from the visual-hull init on the real and pseudo views

@@ -22,6 +22,7 @@ from ..gaussians.splats import load_checkpoint
 from ..gaussians.trainer import render_frame
 from ..progress import log
 from ..scene.dataset import composite, load_prepared
+from ..threads import map_in_processes
 from ..workspace import Workspace
 
 SPARSITIES = (4, 6, 4, 3, 4, 5)  # cycled over objects: mostly 4 views, as the product default
@@ -106,20 +107,14 @@ def _one_thread_worker(fn, args, k: int, n: int):
 
 def in_processes(fn, n: int, *args) -> list:
     """fn(*args, workers=1, shard=(k, n)) for k < n in n spawned one-thread processes."""
-    import multiprocessing as mp
-    import os
-
-    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS"):
-        os.environ[var] = "1"  # the children read these at start
-    pool = mp.get_context("spawn").Pool(n)
-    try:
-        out = pool.starmap(_one_thread_worker, [(fn, args, k, n) for k in range(n)])
-    except BaseException:
-        pool.terminate()
-        raise
-    pool.close()  # not terminate(): the workers exit on their own (pycolmap prints stacks on SIGTERM)
-    pool.join()
+    out: list = [None] * n
+    for k, res in map_in_processes(_shard, [(fn, args, k, n) for k in range(n)], n, quiet=False):
+        out[k] = res
     return out
+
+
+def _shard(fn, args, k: int, n: int):
+    return fn(*args, workers=1, shard=(k, n))
 
 
 __all__ = ["build_pairs", "object_pairs", "in_processes"]

@@ -4,18 +4,22 @@ repaired renders the repair stage averages with G_c's."""
 
 from __future__ import annotations
 
+import contextlib
+
 import torch
 
 from ..config import CKPT, PLY, CoarseConfig
 from ..curves import CURVE, test_probe, write_curve
 from ..gaussians.splats import VIEWER_SH_DEGREE, Splats, export_ply, save_checkpoint, to_world
-from ..gaussians.trainer import render_frame, train_gaussians
+from ..gaussians.trainer import TrainResult, render_frame, train_gaussians
 from ..io import atomic_write_json
 from ..io.exr import write_subbands
 from ..io.images import write_png
 from ..metrics import psnr
-from ..progress import log
+from ..progress import log, progress_bar
+from ..resume import Checkpointer
 from ..scene.dataset import PreparedScene, composite, load_prepared
+from ..threads import configured_count, map_in_processes
 from ..workspace import StageRun, Workspace
 from .shared import background_for, initial_splats, member_checkpoint, subbands_hwc
 
@@ -38,33 +42,64 @@ def run_coarse(ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: int
     return ws.run_stage("coarse", cfg, {"seed": seed}, force, lambda run: train_coarse(run, ws, cfg, device, seed))
 
 
-def train_coarse(run: StageRun, ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: int) -> str:
+def train_model(ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: int, desc: str,
+                checkpoint: Checkpointer, probe: bool) -> tuple[TrainResult, list[str]]:
+    """One coarse model from `seed` (with the test probe: G_c); its result and the probe's views.
+    Module level so that a spawned process can run it."""
     scene = load_prepared(ws.stage_dir("scene"))
     torch.manual_seed(seed)
-    splats = initial_splats(scene, cfg, seed)
-    log(f"coarse: {splats['means'].shape[0]} initial Gaussians, {len(scene.train)} views, "
-        f"{cfg.iterations} iterations on {device}")
-    probe, probe_names = test_probe(ws, scene, cfg, background_for(scene), device)
-    res = train_gaussians(splats, scene.train, cfg, device, extent=1.0, desc="coarse", seed=seed,
-                          has_masks=scene.has_masks, checkpoint=run.checkpointer("gc"), probe=probe)
-    if probe is not None:
+    test, names = test_probe(ws, scene, cfg, background_for(scene), device) if probe else (None, [])
+    res = train_gaussians(initial_splats(scene, cfg, seed), scene.train, cfg, device, extent=1.0, desc=desc,
+                          seed=seed, has_masks=scene.has_masks, checkpoint=checkpoint, probe=test)
+    return res, names
+
+
+# A spawned process takes about 5 s to start (torch, numba's cached kernels): worth it from about
+# a lego member's quarter (1500 iterations x 200 x 200 px = 6e7 pixel-iterations, 48 s here).
+SIDE_BY_SIDE_MIN_WORK = 1.5e7
+
+
+def side_by_side(cfg: CoarseConfig, device: torch.device, pixels: int) -> int:
+    """How many coarse models train at once: on the CPU one per thread this process may use, each
+    in a one-thread process (1.5x the throughput of one model on both cores, see `threads`), when
+    a model's work (iterations x `pixels` per view) pays for starting a process; else 1."""
+    if device.type != "cpu" or cfg.iterations * pixels < SIDE_BY_SIDE_MIN_WORK:
+        return 1
+    return max(1, min(configured_count(), cfg.ensemble))
+
+
+def train_coarse(run: StageRun, ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: int) -> str:
+    scene = load_prepared(ws.stage_dir("scene"))
+    workers = side_by_side(cfg, device, scene.train[0].width * scene.train[0].height)
+    log(f"coarse: {cfg.ensemble} model(s) from seeds {seed}..{seed + cfg.ensemble - 1}, {len(scene.train)} views, "
+        f"{cfg.iterations} iterations on {device}" + (f", {workers} side by side" if workers > 1 else ""))
+    jobs = [(ws, cfg, device, seed + i, "coarse" if i == 0 else f"coarse member {i + 1}/{cfg.ensemble}",
+             run.checkpointer("gc" if i == 0 else f"gc{i}"), i == 0) for i in range(cfg.ensemble)]
+    results: dict[int, TrainResult] = {}
+    probe_names: list[str] = []
+    with progress_bar("coarse models", cfg.ensemble) if workers > 1 else contextlib.nullcontext() as bar:
+        for i, (res, names) in map_in_processes(train_model, jobs, workers):
+            results[i] = res
+            if i == 0:
+                probe_names = names
+            else:
+                save_checkpoint(run.path(member_checkpoint(i)), res.splats, scene.norm, res.iterations)
+            if bar is not None:
+                bar.update(bar.task_ids[0], advance=1, status=f"seed {seed + i}: {res.seconds:.0f} s")
+    res = results[0]
+    if res.curve:
         write_curve(run.path(CURVE), res, probe_names)
     save_checkpoint(run.path(CKPT), res.splats, scene.norm, res.iterations)
     n_ply = export_ply(run.path(PLY), to_world(res.splats, scene.norm), VIEWER_SH_DEGREE)
     per_view = write_coarse_outputs(run, scene, res.splats, device)
     atomic_write_json(run.path("train_psnr.json"), per_view)
     mean_psnr = sum(per_view.values()) / len(per_view)
-    member_s = []
-    for i in range(1, cfg.ensemble):
-        m = train_gaussians(initial_splats(scene, cfg, seed + i), scene.train, cfg, device, extent=1.0,
-                            desc=f"coarse member {i + 1}/{cfg.ensemble}", seed=seed + i,
-                            has_masks=scene.has_masks, checkpoint=run.checkpointer(f"gc{i}"))
-        save_checkpoint(run.path(member_checkpoint(i)), m.splats, scene.norm, m.iterations)
-        member_s.append(round(m.seconds, 2))
-    # train_seconds: G_c alone (what a plain 3DGS of this config costs); the members' beside it
+    member_s = [round(results[i].seconds, 2) for i in range(1, cfg.ensemble)]
+    # train_seconds: G_c alone (trained beside the members when `side_by_side` > 1)
     run.record.update({"num_gaussians": n_ply, "iterations": res.iterations,
                        "train_seconds": round(res.seconds, 2), "final_loss": res.losses[-1],
                        "train_psnr": round(mean_psnr, 3), "seed": seed, "device": str(device),
-                       "ensemble": cfg.ensemble, "member_seconds": member_s})
+                       "ensemble": cfg.ensemble, "member_seconds": member_s, "side_by_side": workers})
     return (f"coarse: {n_ply} Gaussians, training-view PSNR {mean_psnr:.2f} dB, {res.seconds:.1f} s"
-            + (f"; {cfg.ensemble - 1} more ensemble members in {sum(member_s):.1f} s" if member_s else ""))
+            + (f"; {cfg.ensemble - 1} more ensemble members in {sum(member_s):.1f} s" if member_s else "")
+            + (f" ({workers} side by side)" if workers > 1 else ""))
