@@ -184,6 +184,11 @@ def _child_start(parent: int, quiet: bool) -> None:
     threading.Thread(target=watch, daemon=True).start()
 
 
+def _indexed_call(task: tuple[int, Callable, tuple]) -> tuple[int, object]:
+    i, fn, job = task
+    return i, fn(*job)
+
+
 def map_in_processes(fn: Callable, jobs: list[tuple], workers: int, quiet: bool = True
                      ) -> Iterator[tuple[int, object]]:
     """(index, fn(*job)) for every job, in the order they finish: here when `workers` <= 1 (with
@@ -210,14 +215,8 @@ def map_in_processes(fn: Callable, jobs: list[tuple], workers: int, quiet: bool 
             else:
                 os.environ[k] = v
     try:
-        pending = {i: pool.apply_async(fn, job) for i, job in enumerate(jobs)}
-        while pending:
-            done = [i for i, r in pending.items() if r.ready()]
-            for i in done:
-                yield i, pending.pop(i).get()  # re-raises a child's exception here
-            if not done:
-                time.sleep(0.05)
-    except BaseException:
+        yield from pool.imap_unordered(_indexed_call, [(i, fn, job) for i, job in enumerate(jobs)])
+    except BaseException:  # a child's exception (re-raised here), Ctrl-C, or the caller stopping early
         pool.terminate()
         raise
     pool.close()  # not terminate(): the workers exit on their own (pycolmap prints stacks on SIGTERM)

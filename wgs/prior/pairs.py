@@ -98,13 +98,6 @@ def build_pairs(cache: Path, coarse_overrides: dict, limit: int | None = None, b
     return made
 
 
-def _one_thread_worker(fn, args, k: int, n: int):
-    import torch
-
-    torch.set_num_threads(1)
-    return fn(*args, workers=1, shard=(k, n))
-
-
 def in_processes(fn, n: int, *args) -> list:
     """fn(*args, workers=1, shard=(k, n)) for k < n in n spawned one-thread processes."""
     out: list = [None] * n

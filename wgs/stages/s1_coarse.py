@@ -65,7 +65,7 @@ def side_by_side(cfg: CoarseConfig, device: torch.device, pixels: int) -> int:
     a model's work (iterations x `pixels` per view) pays for starting a process; else 1."""
     if device.type != "cpu" or cfg.iterations * pixels < SIDE_BY_SIDE_MIN_WORK:
         return 1
-    return max(1, min(configured_count(), cfg.ensemble))
+    return min(configured_count(), cfg.ensemble)
 
 
 def train_coarse(run: StageRun, ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: int) -> str:
