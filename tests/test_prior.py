@@ -149,6 +149,7 @@ def test_corpus_pairs_train_chain(tmp_path):
     from wgs.prior.pairs import object_pairs
     from wgs.prior.train import PriorConfig, pack_pairs, train_prior
     from wgs.scene.formats import read_scene
+    from wgs.workspace import Workspace
 
     obj = procedural_objects(1)[0]
     scene = tmp_path / "obj"
@@ -156,6 +157,7 @@ def test_corpus_pairs_train_chain(tmp_path):
     assert read_scene(scene).format == "blender"
     arrays = object_pairs(scene, tmp_path / "ws", 4, {"iterations": 20, "init_points": 500, "hull_resolution": 24})
     assert arrays["render"].shape == (4, 32, 32, 3) and arrays["ref"].dtype == np.uint8
+    assert Workspace(tmp_path / "ws").manifest("coarse")["ensemble"] == 1  # G_c alone, not the product's ensemble
     pairs = tmp_path / "pairs"
     pairs.mkdir()
     for name, hold in (("a", False), ("b", True)):
@@ -213,3 +215,65 @@ def test_shipped_prior_loads_with_provenance():
     assert prov["pairs"] > 0 and prov["sources"]
     assert all(s["licence"] for s in prov["sources"])
     assert not any("lego" in s["name"] or "nerf" in s["name"].lower() for s in prov["sources"])
+
+
+def test_kitbash_shape_is_many_flat_coloured_parts():
+    from wgs.prior.procedural import box, cylinder, kitbash_shape
+
+    assert len(box(np.ones(3)).faces) == 12 and len(cylinder(0.1, 0.2, 8).faces) == 32
+    mesh = kitbash_shape(np.random.default_rng(3))
+    assert len(mesh.faces) >= 12 * 13 and len(np.unique(mesh.face_colors, axis=0)) >= 2
+    viewmat = np.eye(4)
+    viewmat[2, 3] = 4.0
+    K = np.array([[40.0, 0, 16], [0, 40.0, 16], [0, 0, 1]])
+    rgba = render_rgba(mesh, viewmat, K, 32, 32)
+    assert 0.05 < rgba[..., 3].mean() < 1
+
+
+def _tiny_pack(path, n=8, size=16):
+    g = np.random.default_rng(0)
+    ref = g.integers(0, 256, (n, size, size, 3), dtype=np.uint8)
+    render = np.clip(ref.astype(int) + g.integers(-40, 40, ref.shape), 0, 255).astype(np.uint8)
+    np.savez_compressed(path, render=render, ref=ref, holdout=np.arange(n) >= n - 2, object=np.arange(n) // 2)
+    return path
+
+
+def test_prior_training_continues_from_its_state_and_starts_from_a_prior(tmp_path):
+    from wgs.models.storage import load_model
+    from wgs.prior.train import PriorConfig, load_pack, train_d, train_prior
+
+    data = load_pack(_tiny_pack(tmp_path / "pack.npz"))
+    args = (data["render"], data["ref"], data["holdout"], torch.device("cpu"))
+    small = dict(d_channels=8, d_batch=2, d_crop=4, eval_every=2, warmup=1)
+    torch.manual_seed(0)  # the model's initial weights
+    straight, _ = train_d(PriorConfig(d_steps=4, **small), *args, log=lambda m: None)
+    state = tmp_path / "state.pt"
+    # an interrupted run: the same config, stopped after its first saved state (step 2)
+    cfg = PriorConfig(d_steps=4, **small)
+    saves = []
+    torch.manual_seed(0)
+    with pytest.raises(KeyboardInterrupt):
+        train_d(cfg, *args, log=lambda m: saves.append(m) or (len(saves) == 1 and _interrupt()), state_path=state)
+    assert state.is_file() and torch.load(state, weights_only=False)["step"] == 2
+    resumed, curve = train_d(cfg, *args, log=lambda m: None, state_path=state)
+    assert curve["step"] == [2, 4]
+    for a, b in zip(straight.state_dict().values(), resumed.state_dict().values(), strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    with pytest.raises(InputError, match="another configuration"):
+        train_d(PriorConfig(d_steps=6, **small), *args, log=lambda m: None, state_path=state)
+
+    first = tmp_path / "first"
+    train_prior(tmp_path / "pack.npz", first, PriorConfig(d_steps=2, u_steps=2, u_channels=8, u_crop=8, **small),
+                torch.device("cpu"), log=lambda m: None)
+    frozen = PriorConfig(d_steps=2, d_lr=0.0, u_steps=0, u_channels=8, **small)  # no step moves the weights
+    rec = train_prior(tmp_path / "pack.npz", tmp_path / "second", frozen, torch.device("cpu"), log=lambda m: None,
+                      init=first)
+    assert rec["init"]["path"] == str(first) and rec["init"]["provenance"]["pairs"] == 8
+    for name in ("D", "U"):
+        a, b = load_model(first / name)[0], load_model(tmp_path / "second" / name)[0]
+        for x, y in zip(a.state_dict().values(), b.state_dict().values(), strict=True):
+            torch.testing.assert_close(x, y)
+
+
+def _interrupt():
+    raise KeyboardInterrupt

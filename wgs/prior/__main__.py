@@ -29,18 +29,20 @@ def main(ctx: click.Context, cache: Path) -> None:
 @main.command()
 @click.option("--mirror", type=click.Path(path_type=Path), default=Path("/work/.mirror"), show_default=True,
               help="folder of fetched snapshots (owner+name/repo)")
-@click.option("--procedural", default=60, show_default=True, help="procedural objects")
+@click.option("--procedural", default=60, show_default=True, help="procedural objects (superquadric unions)")
+@click.option("--kitbash", default=0, show_default=True, help="procedural box-and-cylinder assemblies (thin parts)")
 @click.option("--first-seed", default=0, show_default=True, help="seed (and name) of the first procedural object")
 @click.option("--limit", type=int, default=None, help="render at most this many objects")
 @click.option("--size", default=128, show_default=True, help="image size in pixels")
 @click.option("--workers", default=1, show_default=True, help="one-thread processes")
 @click.pass_obj
-def corpus(cache: Path, mirror: Path, procedural: int, first_seed: int, limit: int | None, size: int,
+def corpus(cache: Path, mirror: Path, procedural: int, kitbash: int, first_seed: int, limit: int | None, size: int,
            workers: int) -> None:
     """Extract the snapshots and render every object into a Blender-format scene."""
     from .corpus import build_corpus
 
-    done = build_corpus(mirror, cache, procedural, limit, size, first_procedural=first_seed, workers=workers)
+    done = build_corpus(mirror, cache, procedural, limit, size, first_procedural=first_seed, workers=workers,
+                        n_kitbash=kitbash)
     click.echo(f"corpus: {len(done)} objects in {cache / 'objects'}")
 
 
@@ -66,11 +68,15 @@ def pairs(cache: Path, iterations: int, limit: int | None, budget_min: float | N
 @click.option("--device", default="auto", show_default=True, help="auto | cpu | cuda")
 @click.option("--d-steps", type=int, default=None, help="D training steps")
 @click.option("--u-steps", type=int, default=None, help="U training steps")
+@click.option("--d-lr", type=float, default=None, help="D's peak learning rate")
+@click.option("--init", type=click.Path(path_type=Path, file_okay=False), default=None,
+              help="start from this prior's D and U (e.g. wgs/prior/weights) instead of from scratch")
 @click.option("--pack-only", is_flag=True, help="write the pack and stop (to carry it to a GPU machine)")
 @click.pass_obj
 def train(cache: Path, pack: Path | None, out: Path | None, device: str, d_steps: int | None, u_steps: int | None,
-          pack_only: bool) -> None:
-    """Pretrain D and U on the pairs (held-out objects measure generalisation)."""
+          d_lr: float | None, init: Path | None, pack_only: bool) -> None:
+    """Pretrain D and U on the pairs (held-out objects measure generalisation). D's training state is
+    kept in the cache: a rerun with the same settings continues it."""
     import json
 
     import torch
@@ -88,8 +94,9 @@ def train(cache: Path, pack: Path | None, out: Path | None, device: str, d_steps
         provenance["snapshots"] = corpus_doc.get("snapshots", {})
         used = sorted({n.rsplit("_v", 1)[0] for n in provenance["objects"]})
         for n in used:  # procedural objects made elsewhere (another machine's cache) are known by their seed
-            if n not in listed and n.startswith("procedural-"):
-                listed[n] = procedural_objects(1, int(n.split("-")[1]))[0]
+            kind, _, seed = n.rpartition("-")
+            if n not in listed and kind in ("procedural", "kitbash") and seed.isdigit():
+                listed[n] = procedural_objects(1, int(seed), kind)[0]
         provenance["sources"] = [{k: listed[n].get(k) for k in ("name", "repo", "path", "licence", "kind", "seed")}
                                  for n in used if n in listed]
         (cache / "pack.json").write_text(json.dumps(provenance, indent=1))
@@ -101,9 +108,11 @@ def train(cache: Path, pack: Path | None, out: Path | None, device: str, d_steps
     dev = torch.device("cuda" if device == "auto" and torch.cuda.is_available() else
                        ("cpu" if device == "auto" else device))
     cfg = PriorConfig()
-    cfg.d_steps = d_steps or cfg.d_steps
-    cfg.u_steps = u_steps or cfg.u_steps
-    rec = train_prior(pack, out or WEIGHTS, cfg, dev, provenance, log=lambda m: click.echo(m))
+    for name, value in (("d_steps", d_steps), ("u_steps", u_steps), ("d_lr", d_lr)):
+        if value is not None:
+            setattr(cfg, name, value)
+    rec = train_prior(pack, out or WEIGHTS, cfg, dev, provenance, log=lambda m: click.echo(m), init=init,
+                      state_dir=cache)
     click.echo(f"prior: D {rec['d_seconds']} s, U {rec['u_seconds']} s on {dev}")
 
 

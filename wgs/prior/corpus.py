@@ -21,7 +21,7 @@ from ..errors import InputError
 from ..io.images import write_png
 from ..progress import log
 from .meshes import Mesh, load_mesh, normalise, y_up_to_z_up
-from .procedural import random_rotation, random_shape, random_texture
+from .procedural import kitbash_shape, random_rotation, random_shape, random_texture
 from .raster import render_rgba
 
 FOV_X = 0.6911112070083618  # NeRF-Synthetic's camera_angle_x
@@ -116,8 +116,9 @@ def list_objects(src_root: Path) -> list[dict]:
     return out
 
 
-def procedural_objects(n: int, first: int = 0) -> list[dict]:
-    return [{"name": f"procedural-{i:04d}", "kind": "procedural", "seed": i, "licence": "ours (generated)"}
+
+def procedural_objects(n: int, first: int = 0, kind: str = "procedural") -> list[dict]:
+    return [{"name": f"{kind}-{i:04d}", "kind": kind, "seed": i, "licence": "ours (generated)"}
             for i in range(first, first + n)]
 
 
@@ -171,6 +172,8 @@ def prepare_mesh(obj: dict, src_root: Path, rng: np.random.Generator) -> tuple[M
     notes: dict = {}
     if obj["kind"] == "procedural":
         mesh = random_shape(rng)
+    elif obj["kind"] == "kitbash":
+        mesh = kitbash_shape(rng)
     else:
         mesh = load_mesh(src_root / obj["repo"].replace("/", "+") / obj["path"])
         if obj.get("y_up", True):
@@ -186,7 +189,7 @@ def prepare_mesh(obj: dict, src_root: Path, rng: np.random.Generator) -> tuple[M
     uniform = np.ptp(mesh.face_colors, axis=0).max() < 0.05 and not mesh.textures
     if uniform:
         mesh.face_colors = np.tile(rng.uniform(0.1, 0.95, 3), (len(mesh.faces), 1))
-    if not mesh.textures and (uniform or rng.random() < 0.5):
+    if not mesh.textures and (uniform or rng.random() < (0.15 if obj["kind"] == "kitbash" else 0.5)):
         mesh.triplanar, notes["texture"] = random_texture(rng)
         mesh.triplanar_scale = float(rng.uniform(0.3, 1.5))
     return mesh, notes
@@ -239,7 +242,8 @@ def render_objects(objs: list[dict], src_root: Path, cache: Path, size: int, n_t
 
 
 def build_corpus(mirror: Path, cache: Path, n_procedural: int, limit: int | None, size: int = 128,
-                 n_train: int = 24, n_test: int = 24, first_procedural: int = 0, workers: int = 1) -> list[dict]:
+                 n_train: int = 24, n_test: int = 24, first_procedural: int = 0, workers: int = 1,
+                 n_kitbash: int = 0) -> list[dict]:
     """Extract the fetched snapshots, list objects, render each (skipping finished ones)."""
     src_root = cache / "src"
     missing_total: dict[str, list[str]] = {}
@@ -257,7 +261,8 @@ def build_corpus(mirror: Path, cache: Path, n_procedural: int, limit: int | None
     groups: dict[str, list[dict]] = {}
     for o in list_objects(src_root):
         groups.setdefault(o["repo"], []).append(o)
-    objs = interleave([procedural_objects(n_procedural, first_procedural), *groups.values()])
+    objs = interleave([procedural_objects(n_procedural, first_procedural),
+                       procedural_objects(n_kitbash, first_procedural, "kitbash"), *groups.values()])
     if limit is not None:
         objs = objs[:limit]
     render_objects(objs, src_root, cache, size, n_train, n_test, workers)

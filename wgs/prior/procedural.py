@@ -1,5 +1,6 @@
-"""Procedural corpus material: shapes (unions of superquadrics and tori) and textures (fractal
-noise, stripes, checkers, crops of the natural photographs that ship inside matplotlib)."""
+"""Procedural corpus material: shapes (unions of superquadrics and tori; kit-bashed assemblies of
+boxes and cylinders) and textures (fractal noise, stripes, checkers, crops of the natural
+photographs that ship inside matplotlib)."""
 
 from __future__ import annotations
 
@@ -69,6 +70,67 @@ def random_shape(rng: np.random.Generator) -> Mesh:
         offset = np.zeros(3) if k == 0 else rng.normal(size=3) / np.sqrt(3) * rng.uniform(0.3, 0.7)
         m.vertices = m.vertices @ R.T + offset
         m.face_colors = np.tile(rng.uniform(0.05, 0.95, 3), (len(m.faces), 1))
+        parts.append(m)
+    return concat(parts)
+
+
+def box(size: np.ndarray) -> Mesh:
+    """Axis-aligned box centred at the origin, 12 outward-facing triangles."""
+    corners = (np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * size / 2).astype(float)
+    faces = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+                      [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+    return Mesh(corners, faces, np.full((12, 3), 0.8))
+
+
+def cylinder(radius: float, height: float, sides: int = 16) -> Mesh:
+    """Closed cylinder along z centred at the origin."""
+    a = np.linspace(0, 2 * np.pi, sides, endpoint=False)
+    ring = np.stack([radius * np.cos(a), radius * np.sin(a)], -1)
+    verts = np.concatenate([np.c_[ring, np.full(sides, -height / 2)], np.c_[ring, np.full(sides, height / 2)],
+                            [[0, 0, -height / 2], [0, 0, height / 2]]])
+    faces = []
+    for i in range(sides):
+        j = (i + 1) % sides
+        faces += [(i, j, sides + j), (i, sides + j, sides + i),  # side
+                  (2 * sides, j, i), (2 * sides + 1, sides + i, sides + j)]  # bottom and top caps
+    return Mesh(verts, np.asarray(faces), np.full((len(faces), 3), 0.8))
+
+
+def kitbash_shape(rng: np.random.Generator) -> Mesh:
+    """A construction-toy-like assembly: a body box and 12-48 beams, plates, axles, wheels and studs
+    glued to it, mostly axis-aligned, in a palette of 2-4 flat colours. Thin parts, gaps and
+    concavities are what a 4-view model renders fat and smeared."""
+    palette = rng.uniform(0.03, 0.97, (int(rng.integers(2, 5)), 3))
+    palette[0] = rng.uniform(0.05, 0.3) * np.ones(3)  # dark grey parts, as such toys have
+    body = rng.uniform(0.3, 0.8, 3)
+    parts = [box(body)]
+    parts[0].face_colors[:] = palette[int(rng.integers(len(palette)))]
+    for _ in range(int(rng.integers(12, 49))):
+        kind = rng.choice(["beam", "plate", "axle", "wheel", "stud"], p=[0.3, 0.25, 0.15, 0.1, 0.2])
+        if kind == "beam":
+            size = np.sort(rng.uniform(0.04, 0.12, 3))
+            size[2] = rng.uniform(0.3, 0.9)
+            m = box(rng.permutation(size))
+        elif kind == "plate":
+            size = rng.uniform(0.15, 0.5, 3)
+            size[int(rng.integers(3))] = rng.uniform(0.02, 0.06)
+            m = box(size)
+        elif kind == "axle":
+            m = cylinder(rng.uniform(0.015, 0.04), rng.uniform(0.3, 0.9), 8)
+        elif kind == "wheel":
+            m = cylinder(rng.uniform(0.1, 0.25), rng.uniform(0.05, 0.15), 20)
+        else:
+            m = cylinder(rng.uniform(0.02, 0.04), rng.uniform(0.02, 0.04), 10)
+        if rng.random() < 0.8:  # axis-aligned: one of the 3 axes becomes the part's z
+            m.vertices = np.roll(m.vertices, int(rng.integers(3)), axis=1)
+        else:
+            m.vertices = m.vertices @ random_rotation(rng).T
+        # glued onto the body's surface or sticking out of it
+        anchor = rng.uniform(-0.5, 0.5, 3) * body
+        face = int(rng.integers(3))
+        anchor[face] = np.sign(rng.uniform(-1, 1)) * body[face] / 2 * rng.uniform(0.9, 1.6)
+        m.vertices = m.vertices + anchor
+        m.face_colors = np.tile(palette[int(rng.integers(len(palette)))], (len(m.faces), 1))
         parts.append(m)
     return concat(parts)
 

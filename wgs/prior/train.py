@@ -18,6 +18,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..errors import InputError
+from ..io import atomic_path
 from ..models.data import random_crops, to_model
 from ..models.hf_unet import HFUNet, HFUNetConfig
 from ..models.ll_denoiser import LLDenoiser, LLDenoiserConfig
@@ -41,6 +43,7 @@ class PriorConfig:
     identity_frac: float = 0.2  # share of samples whose input is the truth itself: leave good content alone
     charbonnier: float = 1e-3  # robust L1 (sharper than L2's regression to the mean)
     d_lr: float = 5e-4
+    warmup: int = 500  # linear learning-rate warm-up steps, then cosine decay to 0
     ema_decay: float = 0.999
     u_channels: int = 16
     u_steps: int = 6000
@@ -125,19 +128,35 @@ def psnr_model_space(a: torch.Tensor, b: torch.Tensor) -> float:
 
 
 def train_d(cfg: PriorConfig, render: torch.Tensor, ref: torch.Tensor, hold: torch.Tensor, device: torch.device,
-            log=print) -> tuple[LLDenoiser, dict]:
+            log=print, init: LLDenoiser | None = None, state_path: Path | None = None) -> tuple[LLDenoiser, dict]:
+    """D trained on the pairs; `init`: start from these weights (a prior trained on another corpus);
+    `state_path`: the training state saved there every `eval_every` steps, and continued from."""
     gen = torch.Generator().manual_seed(cfg.seed)
     tr, va = (~hold).nonzero()[:, 0], hold.nonzero()[:, 0]
     bad_v, clean_v = ll_of(render[va]).to(device), ll_of(ref[va]).to(device)
     render, ref = render.to(device), ref.to(device)
     model = LLDenoiser(LLDenoiserConfig(3, cfg.d_channels)).to(device)
+    if init is not None:
+        model.load_state_dict(init.state_dict())
     ema = copy.deepcopy(model).eval()
     sched = DDIMScheduler(cfg.train_timesteps)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.d_lr, weight_decay=1e-4)
-    lr_at = lambda s: cfg.d_lr * min(1.0, s / 500) * 0.5 * (1 + math.cos(math.pi * s / cfg.d_steps))  # noqa: E731
+    lr_at = lambda s: (cfg.d_lr * min(1.0, s / max(cfg.warmup, 1))  # noqa: E731
+                       * 0.5 * (1 + math.cos(math.pi * s / cfg.d_steps)))
     curve = {"step": [], "loss": [], "val_psnr": [], "val_identity_psnr": psnr_model_space(bad_v, clean_v)}
-    acc, t0 = 0.0, time.perf_counter()
-    for step in range(1, cfg.d_steps + 1):
+    acc, t0, start = 0.0, time.perf_counter(), 1
+    if state_path is not None and state_path.is_file():
+        saved = torch.load(state_path, map_location=device, weights_only=False)
+        if saved["config"] != asdict(cfg):
+            raise InputError("training state of another configuration; delete it to start over", state_path)
+        model.load_state_dict(saved["model"])
+        ema.load_state_dict(saved["ema"])
+        opt.load_state_dict(saved["opt"])
+        gen.set_state(saved["generator"])
+        curve, start = saved["curve"], saved["step"] + 1
+        t0 -= saved["seconds"]
+        log(f"D: continuing from step {saved['step']} ({state_path})")
+    for step in range(start, cfg.d_steps + 1):
         for g in opt.param_groups:
             g["lr"] = lr_at(step)
         idx = tr[torch.randint(len(tr), (cfg.d_batch,), generator=gen)]
@@ -157,6 +176,11 @@ def train_d(cfg: PriorConfig, render: torch.Tensor, ref: torch.Tensor, hold: tor
             curve["loss"].append(acc / cfg.eval_every)
             curve["val_psnr"].append(psnr_model_space(rep, clean_v))
             acc = 0.0
+            if state_path is not None:
+                with atomic_path(state_path) as tmp:
+                    torch.save({"config": asdict(cfg), "model": model.state_dict(), "ema": ema.state_dict(),
+                                "opt": opt.state_dict(), "generator": gen.get_state(), "curve": curve,
+                                "step": step, "seconds": time.perf_counter() - t0}, tmp)
             log(f"D step {step}: loss {curve['loss'][-1]:.5f}  held-out LL PSNR {curve['val_identity_psnr']:.2f} "
                 f"-> {curve['val_psnr'][-1]:.2f} dB  ({time.perf_counter() - t0:.0f} s)")
     return ema, curve
@@ -169,16 +193,21 @@ def hf_triplet(render: torch.Tensor, ref: torch.Tensor) -> tuple[torch.Tensor, t
 
 
 def train_u(cfg: PriorConfig, render: torch.Tensor, ref: torch.Tensor, hold: torch.Tensor, device: torch.device,
-            log=print) -> tuple[HFUNet, dict]:
+            log=print, init: HFUNet | None = None) -> tuple[HFUNet, dict]:
+    """U trained on the pairs (from `init`'s weights when given); the best held-out state is kept."""
     gen = torch.Generator().manual_seed(cfg.seed + 1)
     tr, va = (~hold).nonzero()[:, 0], hold.nonzero()[:, 0]
     v = [t.to(device) for t in hf_triplet(render[va], ref[va])]
     render, ref = render.to(device), ref.to(device)
     model = HFUNet(HFUNetConfig(channels=cfg.u_channels)).to(device)
+    if init is not None:
+        model.load_state_dict(init.state_dict())
     opt = torch.optim.Adam(model.parameters(), lr=cfg.u_lr)
     with torch.no_grad():
         identity = (v[0] - v[2]).abs().mean().item()
-    best, best_state = identity, copy.deepcopy(model.state_dict())
+        start = identity if init is None else float(np.mean([(model(v[0][i:i + 64], v[1][i:i + 64]) - v[2][i:i + 64])
+                                                             .abs().mean().item() for i in range(0, len(va), 64)]))
+    best, best_state = start, copy.deepcopy(model.state_dict())
     curve = {"step": [], "val_l1": [], "identity_l1": identity}
     for step in range(1, cfg.u_steps + 1):
         idx = tr[torch.randint(len(tr), (cfg.u_batch,), generator=gen)]
@@ -203,18 +232,27 @@ def train_u(cfg: PriorConfig, render: torch.Tensor, ref: torch.Tensor, hold: tor
 
 
 def train_prior(pack: Path, out: Path, cfg: PriorConfig, device: torch.device, provenance: dict | None = None,
-                log=print) -> dict:
-    """Train D and U on a pack; write out/D, out/U (config.json + model.safetensors), provenance.json."""
-    from ..models.storage import save_model
+                log=print, init: Path | None = None, state_dir: Path | None = None) -> dict:
+    """Train D and U on a pack; write out/D, out/U (config.json + model.safetensors), provenance.json.
+    init: a prior folder (D/, U/, provenance.json) to start from; its provenance is kept in ours.
+    state_dir: where D's training state is kept between runs (a rerun continues)."""
+    from ..models.storage import load_model, save_model
 
     data = load_pack(pack)
     torch.manual_seed(cfg.seed)
+    d_init = u_init = None
+    if init is not None:
+        d_init, u_init = load_model(init / "D")[0], load_model(init / "U")[0]
+        prov = init / "provenance.json"
+        provenance = {**(provenance or {}), "init": {"path": str(init), "provenance": json.loads(prov.read_text())
+                                                     if prov.is_file() else None}}
     t0 = time.perf_counter()
-    d, d_curve = train_d(cfg, data["render"], data["ref"], data["holdout"], device, log)
+    d, d_curve = train_d(cfg, data["render"], data["ref"], data["holdout"], device, log, d_init,
+                         None if state_dir is None else state_dir / "train_state_D.pt")
     save_model(out / "D", d, {"domain": "wavelet", "levels": 1, "train_timesteps": cfg.train_timesteps,
                               "start": "corrupted", "t_max": cfg.t_max, "repair_t": 0})
     t1 = time.perf_counter()
-    u, u_curve = train_u(cfg, data["render"], data["ref"], data["holdout"], device, log)
+    u, u_curve = train_u(cfg, data["render"], data["ref"], data["holdout"], device, log, u_init)
     save_model(out / "U", u)
     record = {"config": asdict(cfg), "pairs": int(len(data["holdout"])), "holdout_pairs": int(data["holdout"].sum()),
               "device": str(device), "d_seconds": round(t1 - t0, 1),
