@@ -203,11 +203,14 @@ def train_u(cfg: PriorConfig, render: torch.Tensor, ref: torch.Tensor, hold: tor
     if init is not None:
         model.load_state_dict(init.state_dict())
     opt = torch.optim.Adam(model.parameters(), lr=cfg.u_lr)
-    with torch.no_grad():
-        identity = (v[0] - v[2]).abs().mean().item()
-        start = identity if init is None else float(np.mean([(model(v[0][i:i + 64], v[1][i:i + 64]) - v[2][i:i + 64])
-                                                             .abs().mean().item() for i in range(0, len(va), 64)]))
-    best, best_state = start, copy.deepcopy(model.state_dict())
+
+    @torch.no_grad()
+    def held_out_l1() -> float:
+        return float(np.mean([(model(v[0][i:i + 64], v[1][i:i + 64]) - v[2][i:i + 64]).abs().mean().item()
+                              for i in range(0, len(va), 64)]))
+
+    identity = (v[0] - v[2]).abs().mean().item()
+    best, best_state = (identity if init is None else held_out_l1()), copy.deepcopy(model.state_dict())
     curve = {"step": [], "val_l1": [], "identity_l1": identity}
     for step in range(1, cfg.u_steps + 1):
         idx = tr[torch.randint(len(tr), (cfg.u_batch,), generator=gen)]
@@ -218,9 +221,7 @@ def train_u(cfg: PriorConfig, render: torch.Tensor, ref: torch.Tensor, hold: tor
         loss.backward()
         opt.step()
         if step % cfg.eval_every == 0 or step == cfg.u_steps:
-            with torch.no_grad():
-                vl = float(np.mean([(model(v[0][i:i + 64], v[1][i:i + 64]) - v[2][i:i + 64]).abs().mean().item()
-                                    for i in range(0, len(va), 64)]))
+            vl = held_out_l1()
             curve["step"].append(step)
             curve["val_l1"].append(vl)
             if vl < best:
