@@ -73,6 +73,10 @@ def test_workspace_contract_and_results(tiny):
         assert its[0] == 0 and its == sorted(its) and len(its) >= 2 and len(curve["views"]) == 4
         assert all(math.isfinite(p["psnr"]) for p in curve["points"])
     assert "| coarse |" in report and "| fine |" in report
+    gain = json.loads((ws.root / "6_eval/per_view_repair.json").read_text())
+    assert set(gain["render"]) == set(gain["repaired"]) == set(per["psnr"])  # 5 views, fewer than 50
+    mean_gain = sum(gain["repaired"][k] - gain["render"][k] for k in gain["render"]) / 5
+    assert math.isclose(res["repair_gain"]["gain_db"], mean_gain) and res["repair_gain"]["num_views"] == 5
     views = json.loads((ws.root / "4_repair/views.json").read_text())
     assert len(views["views"]) == 16  # TINY's [repair] num_views over the sphere
     assert views["used_u"] is ws.manifest("finetune")["u_used"]  # U only where it beat no HF repair
@@ -111,6 +115,25 @@ def test_eval_baseline_plain_3dgs_for_the_same_time(tiny, tmp_path):
     # the plot's curves, also in results.json: coarse, fine and the baseline on one time axis
     assert set(out["curves"]) == {"coarse", "fine", "plain 3DGS"}
     assert abs(out["curves"]["plain 3DGS"][0][0] - out["curves"]["coarse"][0][0]) < 0.5  # both start with coarse
+
+
+def test_repair_gain_at_test_poses_spread_over_them(tiny, tmp_path):
+    from wgs.stages.s6_eval import spread
+
+    assert spread(list(range(200)), 50) == list(range(0, 200, 4))
+    assert spread(list(range(7)), 3) == [0, 2, 4]
+    assert spread(list(range(5)), 0) == spread(list(range(5)), 50) == list(range(5))
+    _, cfg, ws0, _ = tiny
+    ws = tmp_path / "ws"
+    shutil.copytree(ws0.root, ws)
+    res = CliRunner().invoke(cli, ["-q", "--config", str(cfg), "-w", str(ws), "eval", "--force",
+                                   "--repair-gain-views", "2"], catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    out = json.loads((ws / "6_eval/results.json").read_text())
+    names = list(json.loads((ws / "6_eval/per_view.json").read_text())["psnr"])  # in the test views' order
+    gain = json.loads((ws / "6_eval/per_view_repair.json").read_text())
+    assert out["repair_gain"]["num_views"] == 2 and out["num_views"] == 5
+    assert sorted(gain["render"]) == sorted(names[i] for i in (0, 2))
 
 
 def test_second_run_recomputes_nothing_and_fine_option_reruns_fine_and_eval(tiny, tmp_path):

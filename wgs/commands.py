@@ -118,17 +118,19 @@ def register(cli, stage_common, workspace_option) -> None:
     @click.option("--lpips-weights", type=click.Path(path_type=str), default=None,
                   help="Folder with the LPIPS weights (else $WGS_LPIPS_WEIGHTS, $TORCH_HOME/hub/checkpoints).")
     @click.option("--max-views", type=int, default=None, help="Evaluate on the first N test views only.")
+    @click.option("--repair-gain-views", type=int, default=None,
+                  help="Score the repair at N test poses spread over them (0: all).")
     @click.option("--baseline", is_flag=True, default=None,
                   help="Also train plain 3DGS for the pipeline's training time and plot its curve.")
     @stage_common
     @click.pass_obj
-    def eval_(obj, lpips_net, lpips_weights, max_views, baseline, force, preset):
+    def eval_(obj, lpips_net, lpips_weights, max_views, repair_gain_views, baseline, force, preset):
         """PSNR, SSIM, LPIPS of G_f and G_c on the test views, and the error-against-time report."""
         from .stages.s6_eval import run_eval
 
         final = "fine" if obj.ws().manifest("fine") is not None else "coarse"
         cfg = obj.config("eval", preset, lpips_net=lpips_net, lpips_weights=lpips_weights, max_views=max_views,
-                         baseline=baseline)
+                         repair_gain_views=repair_gain_views, baseline=baseline)
         run_eval(obj.ws(), cfg, obj.torch_device(), force=force, final=final, seed=obj.seed)
 
     @cli.command("all")

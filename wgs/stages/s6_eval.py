@@ -61,18 +61,27 @@ def evaluate_model(splats, frames, device, bg, lpips_fn, out_dir=None, desc="eva
     return per
 
 
+def spread(frames: list[Frame], k: int) -> list[Frame]:
+    """k of the frames at evenly spaced positions in their order (all of them when k is 0 or >= their number)."""
+    n = len(frames)
+    return frames if k <= 0 or k >= n else [frames[i * n // k] for i in range(k)]
+
+
 class RepairGain:
     """PSNR of G_c's render and of the pseudo reference `wgs repair` makes at the same camera (the
     ensemble's renders repaired by D + U, averaged) against the truth at the test poses: how much
-    the repair itself fixes, before any 3D training on it. Called per view with G_c's render."""
+    the repair itself fixes, before any 3D training on it. Called per view with G_c's render;
+    `names`: the views it scores (None: every view)."""
 
-    def __init__(self, ws: Workspace, members, device, bg, seed: int):
-        self.members, self.device, self.bg = members, device, bg
+    def __init__(self, ws: Workspace, members, device, bg, seed: int, names: set[str] | None = None):
+        self.members, self.device, self.bg, self.names = members, device, bg, names
         self.repairer = workspace_repairer(ws, device, seed)
         self.before: dict[str, float] = {}
         self.after: dict[str, float] = {}
 
     def __call__(self, frame: Frame, render: torch.Tensor, truth: torch.Tensor) -> None:
+        if self.names is not None and frame.name not in self.names:
+            return
         _, fixed, _, _ = ensemble_repair(self.members, frame, self.bg, self.repairer, self.device, first_render=render)
         self.before[frame.name], self.after[frame.name] = psnr(render, truth), psnr(fixed, truth)
 
@@ -269,7 +278,9 @@ def evaluate(run: StageRun, ws: Workspace, cfg: EvalConfig, device: torch.device
             continue
         if key == "coarse" and want_gain:  # G_c is the ensemble's first member: loaded and rendered once
             members = coarse_members(ws, scene, device)
-            splats, repair_gain = members[0], RepairGain(ws, members, device, bg, seed)
+            gain_frames = spread(frames, cfg.repair_gain_views)
+            splats, repair_gain = members[0], RepairGain(ws, members, device, bg, seed,
+                                                         {f.name for f in gain_frames})
         else:
             splats, _ = load_checkpoint(ws.stage_dir(st) / CKPT, scene.norm, device)
         out = run.path("renders", "x").parent if key == "fine" else None
@@ -283,6 +294,8 @@ def evaluate(run: StageRun, ws: Workspace, cfg: EvalConfig, device: torch.device
                         "num_views": len(frames)}
         if repair_gain is not None:
             gain = repair_gain.summary()
+            atomic_write_json(run.path("per_view_repair.json"), {"render": repair_gain.before,
+                                                                  "repaired": repair_gain.after})
     if cfg.baseline:
         b_splats, b_record = train_baseline(run, ws, scene, stage_times(ws), device, seed)
         per = evaluate_model(b_splats, frames, device, bg, lpips_fn, desc="eval baseline")
