@@ -1,0 +1,49 @@
+"""Fine stage only on a base workspace's stages (symlinked), with overrides; G_f PSNR at all test views.
+usage: python xp_fine.py BASE TAG '{"iterations": 2500}' [REPAIR_DIR]"""
+import json
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+from wgs.config import CKPT, resolve
+from wgs.gaussians.splats import load_checkpoint
+from wgs.gaussians.trainer import render_frame
+from wgs.metrics import psnr
+from wgs.scene.dataset import composite, load_prepared
+from wgs.stages.s5_fine import run_fine
+from wgs.stages.shared import background_for
+from wgs.workspace import STAGE_DIRS, Workspace
+
+
+def test_psnr(ws: Workspace, stage: str) -> float:
+    scene = load_prepared(ws.stage_dir("scene"), load_test_images=True)
+    splats = load_checkpoint(ws.stage_dir(stage) / CKPT, scene.norm)[0]
+    bg = background_for(scene)
+    vals = []
+    with torch.no_grad():
+        for f in scene.test:
+            vals.append(psnr(render_frame(splats, f, torch.device("cpu"), bg)[0], composite(f.image, f.mask, bg)))
+    return sum(vals) / len(vals)
+
+
+if __name__ == "__main__":
+    base, tag, over = Path(sys.argv[1]).resolve(), sys.argv[2], json.loads(sys.argv[3])
+    repair = Path(sys.argv[4]).resolve() if len(sys.argv) > 4 else None
+    root = Path("fx") / tag
+    root.mkdir(parents=True, exist_ok=True)
+    for stage in ("scene", "coarse", "mask_data", "finetune", "repair"):
+        link = root / STAGE_DIRS[stage]
+        if not link.exists():
+            link.symlink_to(repair if stage == "repair" and repair else base / STAGE_DIRS[stage])
+    ws = Workspace(root)
+    seed = int(over.pop("seed", 0))
+    t0 = time.perf_counter()
+    run_fine(ws, resolve("fine", cli=over), torch.device("cpu"), seed, force=True)
+    secs = time.perf_counter() - t0
+    p = test_psnr(ws, "fine")
+    res = {"tag": tag, "over": over, "seed": seed, "repair": str(repair), "gf": round(p, 4), "fine_s": round(secs, 1)}
+    print(json.dumps(res), flush=True)
+    with open("fine_results.jsonl", "a") as fh:
+        fh.write(json.dumps(res) + "\n")
