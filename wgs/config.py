@@ -352,7 +352,8 @@ CHOICES: dict[str, tuple[str, ...]] = {"strategy": ("orm", "offline-rm", "loo"),
                                        "matcher": ("auto", "exhaustive", "sequential")}
 
 
-RANGES: dict[str, tuple[int, int | None]] = {"ensemble": (1, None), "symmetries": (1, 8)}  # inclusive; None: open
+RANGES: dict[str, tuple[int, int | None]] = {"ensemble": (1, None), "symmetries": (1, 8),
+                                             "repair_gain_views": (0, None)}  # inclusive; None: open
 
 
 def check_choices(cfg: Any) -> None:

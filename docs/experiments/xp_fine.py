@@ -9,10 +9,9 @@ import torch
 
 from wgs.config import CKPT, resolve
 from wgs.gaussians.splats import load_checkpoint
-from wgs.gaussians.trainer import render_frame
-from wgs.metrics import psnr
-from wgs.scene.dataset import composite, load_prepared
+from wgs.scene.dataset import load_prepared
 from wgs.stages.s5_fine import run_fine
+from wgs.stages.s6_eval import evaluate_model
 from wgs.stages.shared import background_for
 from wgs.workspace import STAGE_DIRS, Workspace
 
@@ -20,12 +19,8 @@ from wgs.workspace import STAGE_DIRS, Workspace
 def test_psnr(ws: Workspace, stage: str) -> float:
     scene = load_prepared(ws.stage_dir("scene"), load_test_images=True)
     splats = load_checkpoint(ws.stage_dir(stage) / CKPT, scene.norm)[0]
-    bg = background_for(scene)
-    vals = []
-    with torch.no_grad():
-        for f in scene.test:
-            vals.append(psnr(render_frame(splats, f, torch.device("cpu"), bg)[0], composite(f.image, f.mask, bg)))
-    return sum(vals) / len(vals)
+    per = evaluate_model(splats, scene.test, torch.device("cpu"), background_for(scene), None)
+    return sum(per["psnr"].values()) / len(per["psnr"])
 
 
 if __name__ == "__main__":

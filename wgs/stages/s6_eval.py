@@ -71,16 +71,16 @@ class RepairGain:
     """PSNR of G_c's render and of the pseudo reference `wgs repair` makes at the same camera (the
     ensemble's renders repaired by D + U, averaged) against the truth at the test poses: how much
     the repair itself fixes, before any 3D training on it. Called per view with G_c's render;
-    `names`: the views it scores (None: every view)."""
+    scores the views named in `names` and passes over the others."""
 
-    def __init__(self, ws: Workspace, members, device, bg, seed: int, names: set[str] | None = None):
+    def __init__(self, ws: Workspace, members, device, bg, seed: int, names: set[str]):
         self.members, self.device, self.bg, self.names = members, device, bg, names
         self.repairer = workspace_repairer(ws, device, seed)
         self.before: dict[str, float] = {}
         self.after: dict[str, float] = {}
 
     def __call__(self, frame: Frame, render: torch.Tensor, truth: torch.Tensor) -> None:
-        if self.names is not None and frame.name not in self.names:
+        if frame.name not in self.names:
             return
         _, fixed, _, _ = ensemble_repair(self.members, frame, self.bg, self.repairer, self.device, first_render=render)
         self.before[frame.name], self.after[frame.name] = psnr(render, truth), psnr(fixed, truth)
@@ -278,9 +278,8 @@ def evaluate(run: StageRun, ws: Workspace, cfg: EvalConfig, device: torch.device
             continue
         if key == "coarse" and want_gain:  # G_c is the ensemble's first member: loaded and rendered once
             members = coarse_members(ws, scene, device)
-            gain_frames = spread(frames, cfg.repair_gain_views)
-            splats, repair_gain = members[0], RepairGain(ws, members, device, bg, seed,
-                                                         {f.name for f in gain_frames})
+            names = {f.name for f in spread(frames, cfg.repair_gain_views)}
+            splats, repair_gain = members[0], RepairGain(ws, members, device, bg, seed, names)
         else:
             splats, _ = load_checkpoint(ws.stage_dir(st) / CKPT, scene.norm, device)
         out = run.path("renders", "x").parent if key == "fine" else None
