@@ -61,8 +61,8 @@ def test_workspace_contract_and_results(tiny):
     assert "PSNR" in output and "report" in output
     report = (ws.root / "6_eval/report.md").read_text()
     page = (ws.root / "6_eval/report.html").read_text()
-    # self-contained: plot, 2 worst + 2 best sheets (5 views) and the contact sheet embedded
-    assert page.count("src='data:image/png;base64,") == 1 + 4 + 1 and "src='http" not in page
+    # self-contained: plot, 2 worst + 2 best sheets (5 views), 3 worst outlines and the contact sheet embedded
+    assert page.count("src='data:image/png;base64,") == 1 + 4 + 3 + 1 and "src='http" not in page
     assert len(list((ws.root / "6_eval/sheets").glob("*.png"))) == 4
     worst = min(per["psnr"], key=per["psnr"].get)
     assert page.index(worst) < page.index("Per view") and "Repair gain" in page
@@ -73,6 +73,14 @@ def test_workspace_contract_and_results(tiny):
         assert its[0] == 0 and its == sorted(its) and len(its) >= 2 and len(curve["views"]) == 4
         assert all(math.isfinite(p["psnr"]) for p in curve["points"])
     assert "| coarse |" in report and "| fine |" in report
+    # silhouettes: per view and as means for G_c and G_f, the hull's and the leave-one-out estimate
+    assert set(per["silhouette_iou"]) == set(per["psnr"]) and len(list((ws.root / "6_eval/outlines").glob("*"))) == 5
+    for q in (res, res["coarse"]):
+        assert 0 < q["silhouette_iou"] <= 1 and q["silhouette_excess"] >= 0 and q["silhouette_missed"] >= 0
+    shape = json.loads((ws.root / "6_eval/per_view_shape.json").read_text())
+    assert len(shape["leave_one_out"]) == 4 and len(shape["hull_test"]) == 5  # 4 training views, 5 test views
+    assert 0 < res["shape"]["leave_one_out"]["iou"] <= 1 and 0 < res["shape"]["hull_test"]["iou"] <= 1
+    assert "leave-one-out" in report and "silhouette IoU" in page and "Silhouettes, worst first" in page
     gain = json.loads((ws.root / "6_eval/per_view_repair.json").read_text())
     assert set(gain["render"]) == set(gain["repaired"]) == set(per["psnr"])  # 5 views, fewer than 50
     mean_gain = sum(gain["repaired"][k] - gain["render"][k] for k in gain["render"]) / 5

@@ -195,6 +195,9 @@ class EvalConfig(LpipsWeightsConfig):
     # at this many test poses spread evenly over them (0: all): each repairs every member's render
     # (lego, 10 models: eval 200 s with all 200 poses, 63 s with 50; mean gain +1.638 vs +1.642 dB)
     repair_gain_views: int = 50
+    # the visual hull's grid (voxels along its box's side) whose silhouettes are scored at the test
+    # views and, leaving each training view out in turn, at the training views
+    hull_resolution: int = TrainConfig.hull_resolution
     turntable_frames: int = 48  # a GIF of the final model on an orbit fitted to the training cameras; 0: none
     # plain 3DGS (the coarse trainer, no repair) for the same training time as the pipeline, with its
     # own curve on the error-against-time plot: what the time would have bought without WaveletGaussian

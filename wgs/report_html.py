@@ -1,6 +1,7 @@
 """`6_eval/report.html`: one self-contained page (images embedded as data URIs) with the summary
 table, the error-against-time plot, per-view metrics worst first, render | truth | error sheets of
-the worst and best views, a turntable GIF and the repair stage's contact sheet."""
+the worst and best views, outline sheets of the worst silhouettes, a turntable GIF and the repair
+stage's contact sheet."""
 
 from __future__ import annotations
 
@@ -30,6 +31,18 @@ def error_sheet(render: np.ndarray, truth: np.ndarray) -> np.ndarray:
     return np.concatenate([render, truth, err], axis=1)
 
 
+def outline_sheet(render: np.ndarray, true: np.ndarray, pred: np.ndarray) -> np.ndarray:
+    """The render [H, W, 3] with its silhouette `pred` [H, W] bool against the true one `true`:
+    area the model has too much tinted red, area it misses tinted blue, the true outline green."""
+    out = render.copy()
+    out[pred & ~true] = 0.4 * out[pred & ~true] + 0.6 * np.array([1.0, 0.0, 0.0])
+    out[true & ~pred] = 0.4 * out[true & ~pred] + 0.6 * np.array([0.0, 0.3, 1.0])
+    pad = np.pad(true, 1, mode="edge")
+    rim = true & ~(pad[:-2, 1:-1] & pad[2:, 1:-1] & pad[1:-1, :-2] & pad[1:-1, 2:])
+    out[rim] = np.array([0.0, 0.8, 0.0])
+    return out
+
+
 def worst_and_best(psnr: dict[str, float], k: int = 3) -> list[tuple[str, str]]:
     """[(label, view name)] for the k worst and k best views by PSNR (fewer when there are few views)."""
     order = sorted(psnr, key=psnr.get)
@@ -50,8 +63,10 @@ def _fmt(x: Any, digits: int = 3) -> str:
 def write_report_html(path: Path, *, title: str, times: list[dict[str, Any]], coarse: dict, fine: dict,
                       per_fine: dict[str, dict[str, float]], per_coarse: dict[str, dict[str, float]],
                       sheets: list[tuple[str, str, Path]], plot: Path, contact_sheet: Path | None,
-                      notes: list[str], turntable: Path | None = None) -> None:
-    """Write the page. sheets: (label, view name, PNG of `error_sheet`) per shown view."""
+                      notes: list[str], turntable: Path | None = None,
+                      outlines: list[tuple[str, str, Path]] = ()) -> None:
+    """Write the page. sheets: (label, view name, PNG of `error_sheet`) per shown view; outlines the
+    same of `outline_sheet`."""
     parts = [f"<!doctype html><meta charset='utf-8'><title>{html.escape(title)}</title><style>{STYLE}</style>",
              f"<h1>{html.escape(title)}</h1>"]
     rows = []
@@ -71,13 +86,20 @@ def write_report_html(path: Path, *, title: str, times: list[dict[str, Any]], co
             if (uri := png_data_uri(p)) is not None:
                 parts.append(f"<h3>{label}: {html.escape(name)} ({_fmt(per_fine['psnr'].get(name), 2)} dB)</h3>"
                              f"<img src='{uri}' alt='{html.escape(name)}'>")
+    if outlines:
+        parts.append("<h2>Silhouettes, worst first</h2><p class='note'>final model's render; red: area it has "
+                     "too much, blue: area it misses, green: the true outline</p>")
+        for label, name, p in outlines:
+            if (uri := png_data_uri(p)) is not None:
+                parts.append(f"<h3>{html.escape(name)} ({label})</h3><img src='{uri}' alt='{html.escape(name)}'>")
     names = sorted(per_fine["psnr"], key=per_fine["psnr"].get)
-    has_lpips = "lpips" in per_fine
+    extra = [k for k in ("lpips", "silhouette_iou") if k in per_fine]
     rows = [[n, _fmt(per_fine["psnr"][n], 2), _fmt(per_coarse.get("psnr", {}).get(n), 2),
              _fmt(per_fine["psnr"][n] - per_coarse["psnr"][n], 2) if n in per_coarse.get("psnr", {}) else "",
-             _fmt(per_fine["ssim"][n])] + ([_fmt(per_fine["lpips"][n])] if has_lpips else []) for n in names]
+             _fmt(per_fine["ssim"][n])] + [_fmt(per_fine[k].get(n)) for k in extra] for n in names]
     parts += ["<h2>Per view, worst first</h2>", "<div class='scroll'>",
-              _table(["view", "PSNR", "coarse PSNR", "gain", "SSIM"] + (["LPIPS"] if has_lpips else []), rows),
+              _table(["view", "PSNR", "coarse PSNR", "gain", "SSIM"]
+                     + [{"lpips": "LPIPS", "silhouette_iou": "silhouette IoU"}[k] for k in extra], rows),
               "</div>"]
     if contact_sheet is not None and (uri := png_data_uri(contact_sheet)) is not None:
         parts += ["<h2>Repair: pseudo references</h2><p class='note'>coarse render | repaired</p>",

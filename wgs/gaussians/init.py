@@ -5,79 +5,30 @@ from __future__ import annotations
 
 import torch
 
-from ..errors import InputError
-
-
-def project_points(points: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """[N, 3] -> pixel coordinates [N, 2] (pixel centres at +0.5) and depth [N]."""
-    p = points @ viewmat[:3, :3].T + viewmat[:3, 3]
-    z = p[:, 2]
-    uv = (p @ K.T)[:, :2] / z.clamp_min(1e-9)[:, None]
-    return uv, z
+from ..shape.hull import HullGrid, surface, visual_hull_grid
 
 
 def visual_hull(frames, resolution: int = 96, extent: float = 1.0, max_points: int = 20000,
                 near: float = 0.01, generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """Carve a grid over [-extent, extent]^3 (normalised world) with the training masks.
-
-    A voxel is kept when, in all views (or all but one, with 3 or more views), it is in front of the
-    camera, inside the frustum and inside the mask. A coarse pass finds the hull's bounding box and
-    a second pass carves that box at `resolution`. Only the hull's surface voxels are returned
-    (the renders see surfaces), coloured by the mean colour of the views that see them.
+    """Initial points from the training masks' visual hull (`shape.hull.visual_hull_grid`): the
+    hull's surface voxels (the renders see surfaces), jittered within their voxel, coloured by the
+    mean colour of the views that see them, at most `max_points` of them.
 
     Returns points [M, 3] and colours [M, 3]; raises InputError if the hull is empty.
     """
-    lo = torch.full((3,), -extent)
-    hi = torch.full((3,), extent)
-    coarse = 32
-    occ, _, grid = _carve(frames, lo, hi, coarse, near)
-    if occ.any():
-        pts = grid[occ.reshape(-1)]
-        cell = (hi - lo) / coarse
-        lo, hi = torch.maximum(pts.min(0).values - cell, lo), torch.minimum(pts.max(0).values + cell, hi)
-    return _hull_surface(frames, lo, hi, resolution, near, max_points, generator)
+    grid, colours = visual_hull_grid(frames, resolution, extent, near)
+    return hull_points(grid, colours, max_points, generator)
 
 
-def _carve(frames, lo: torch.Tensor, hi: torch.Tensor, resolution: int, near: float):
-    """Occupancy [R, R, R], mean colours [R³, 3] and voxel centres [R³, 3] over the box lo..hi."""
-    axes = [(torch.arange(resolution, dtype=torch.float32) + 0.5) / resolution * (hi[i] - lo[i]) + lo[i]
-            for i in range(3)]
-    grid = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    votes = torch.zeros(grid.shape[0], dtype=torch.int32)
-    col_sum = torch.zeros(grid.shape[0], 3)
-    col_n = torch.zeros(grid.shape[0])
-    for f in frames:
-        uv, z = project_points(grid, f.viewmat, f.K)
-        u = torch.floor(uv[:, 0]).long()
-        v = torch.floor(uv[:, 1]).long()
-        inside = (z > near) & (u >= 0) & (u < f.width) & (v >= 0) & (v < f.height)
-        idx = torch.where(inside, v * f.width + u, torch.zeros_like(u))
-        in_mask = inside & (f.mask.reshape(-1)[idx] > 0.5)
-        votes += in_mask.int()
-        col_sum += torch.where(in_mask[:, None], f.image.reshape(-1, 3)[idx], torch.zeros(1, 3))
-        col_n += in_mask.float()
-    n = len(frames)
-    need = n - 1 if n >= 3 else n
-    occ = (votes >= need).reshape(resolution, resolution, resolution)
-    return occ, col_sum / col_n.clamp_min(1)[:, None], grid
-
-
-def _hull_surface(frames, lo, hi, resolution, near, max_points, generator):
-    occ, colours, grid = _carve(frames, lo, hi, resolution, near)
-    if not occ.any():
-        raise InputError("the visual hull of the training masks is empty: the training views share no object "
-                         "region. Check that the masks are white on the object, that every training view sees it, "
-                         "and that the poses are right (camera-to-world vs world-to-camera, OpenGL vs OpenCV axes)")
-    pad = torch.nn.functional.pad(occ[None, None].float(), (1, 1, 1, 1, 1, 1))
-    interior = -torch.nn.functional.max_pool3d(-pad, 3, stride=1)[0, 0] > 0.5
-    surface = (occ & ~interior).reshape(-1)
-    pts = grid[surface]
-    cols = colours[surface]
-    jitter = (torch.rand(pts.shape, generator=generator) - 0.5) * ((hi - lo) / resolution)
-    pts = pts + jitter
+def hull_points(grid: HullGrid, colours: torch.Tensor, max_points: int, generator: torch.Generator | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Points [M, 3] and colours [M, 3] on the surface of an occupancy grid (colours [R³, 3] per voxel)."""
+    keep = surface(grid)
+    pts, cols = grid.centres()[keep], colours[keep]
+    pts = pts + (torch.rand(pts.shape, generator=generator) - 0.5) * grid.cell
     if pts.shape[0] > max_points:
-        keep = torch.randperm(pts.shape[0], generator=generator)[:max_points]
-        pts, cols = pts[keep], cols[keep]
+        pick = torch.randperm(pts.shape[0], generator=generator)[:max_points]
+        pts, cols = pts[pick], cols[pick]
     return pts, cols
 
 

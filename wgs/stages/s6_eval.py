@@ -23,8 +23,11 @@ from ..io.images import write_gif, write_png
 from ..lpips import LPIPS, LpipsUnavailable
 from ..metrics import psnr, ssim
 from ..progress import log, progress_bar
+from ..report_html import outline_sheet
 from ..scene.dataset import Frame, composite, load_prepared
 from ..scene.orbit import orbit_frames
+from ..shape.hull import silhouette, visual_hull_grid
+from ..shape.scores import SILHOUETTE_DOC, leave_one_out, mean_scores, silhouette_scores
 from ..workspace import STAGE_DIRS, StageRun, Workspace
 from .shared import background_for, coarse_members, ensemble_repair, initial_splats, workspace_repairer
 
@@ -32,21 +35,33 @@ METRICS_DOC = {
     "psnr": "mean over views of per-view PSNR (dB), images in [0, 1] on the dataset background",
     "ssim": "11x11 Gaussian window, sigma 1.5, zero padding, mean of the map (3DGS / GaussianObject code)",
     "lpips": "LPIPS v0.1 in plain torch from local torchvision-format weights",
+    "silhouette": SILHOUETTE_DOC,
 }
+SILHOUETTE_KEYS = ("iou", "excess", "missed")
 
 
 def evaluate_model(splats, frames, device, bg, lpips_fn, out_dir=None, desc="eval",
-                   on_view: Callable[[Frame, torch.Tensor, torch.Tensor], None] | None = None
-                   ) -> dict[str, dict[str, float]]:
-    """Per-view PSNR / SSIM (/ LPIPS) of `splats` at `frames`; `on_view(frame, render, truth)` sees
-    each render too (the repair gain reuses G_c's instead of rendering it again)."""
+                   on_view: Callable[[Frame, torch.Tensor, torch.Tensor], None] | None = None,
+                   outline_dir: Path | None = None) -> dict[str, dict[str, float]]:
+    """Per-view PSNR / SSIM (/ LPIPS) of `splats` at `frames`, and where a frame has a mask its
+    silhouette scores (silhouette_iou, silhouette_excess, silhouette_missed); renders go to
+    `out_dir`, outline sheets (`report_html.outline_sheet`) to `outline_dir`.
+    `on_view(frame, render, truth)` sees each render too (the repair gain reuses G_c's instead of
+    rendering it again)."""
     per: dict[str, dict[str, float]] = {"psnr": {}, "ssim": {}, "lpips": {}}
+    per.update({f"silhouette_{k}": {} for k in SILHOUETTE_KEYS})
     with progress_bar(desc, len(frames)) as prog:
         for i, f in enumerate(frames):
-            rgb, _ = render_frame(splats, f, device, bg)
+            rgb, alpha = render_frame(splats, f, device, bg)
             ref = composite(f.image, f.mask, bg)
             per["psnr"][f.name] = psnr(rgb, ref)
             per["ssim"][f.name] = ssim(rgb, ref)
+            if f.mask is not None:
+                pred, true = alpha[..., 0] > 0.5, f.mask > 0.5
+                for k, v in silhouette_scores(pred, true).items():
+                    per[f"silhouette_{k}"][f.name] = v
+                if outline_dir is not None:
+                    write_png(outline_dir / f.name, outline_sheet(rgb.numpy(), true.numpy(), pred.numpy()))
             if lpips_fn is not None:
                 with torch.no_grad():
                     per["lpips"][f.name] = float(lpips_fn(rgb.permute(2, 0, 1)[None].to(device),
@@ -56,9 +71,7 @@ def evaluate_model(splats, frames, device, bg, lpips_fn, out_dir=None, desc="eva
             if on_view is not None:
                 on_view(f, rgb, ref)
             prog.update(0, completed=i + 1)
-    if lpips_fn is None:
-        del per["lpips"]
-    return per
+    return {k: v for k, v in per.items() if v}
 
 
 def spread(frames: list[Frame], k: int) -> list[Frame]:
@@ -95,12 +108,39 @@ class RepairGain:
 
 
 def summarise(per: dict[str, dict[str, float]]) -> dict[str, float | None]:
+    """Mean and spread over views of each metric (None where it was not measured)."""
     out: dict[str, float | None] = {}
-    for m in ("psnr", "ssim", "lpips"):
+    for m in ("psnr", "ssim", "lpips", *(f"silhouette_{k}" for k in SILHOUETTE_KEYS)):
         vals = list(per.get(m, {}).values())
         out[m] = statistics.fmean(vals) if vals else None
         out[f"{m}_std"] = statistics.pstdev(vals) if vals else None
     return out
+
+
+def shape_reference(scene, frames: list[Frame], resolution: int) -> dict[str, Any] | None:
+    """How fat the visual hull is: the hull of all training masks (every mask agreeing) scored at
+    the test views that have masks, and the leave-one-out estimate that needs no test views (the
+    hull of the other training masks at each training camera). None without masks."""
+    if not scene.has_masks:
+        return None
+    grid, _ = visual_hull_grid(scene.train, resolution, tolerate=0)
+    test = {f.name: silhouette_scores(silhouette(grid, f)[0], f.mask > 0.5) for f in frames if f.mask is not None}
+    loo = leave_one_out(scene.train, resolution) if len(scene.train) >= 2 else {}
+    return {"hull_test": mean_scores(test), "leave_one_out": mean_scores(loo), "hull_resolution": resolution,
+            "hull_test_per_view": test, "leave_one_out_per_view": loo}
+
+
+def shape_line(coarse: dict, fine: dict, shape: dict) -> str:
+    """One line of silhouette IoUs: hull, G_c and G_f at the test views, and the leave-one-out estimate."""
+    parts = []
+    if shape["hull_test"] is not None:
+        parts.append(f"visual hull {shape['hull_test']['iou']:.3f}")
+    if coarse.get("silhouette_iou") is not None:
+        parts.append(f"coarse {coarse['silhouette_iou']:.3f} -> fine {fine['silhouette_iou']:.3f}")
+    head = "silhouette IoU at the test views: " + ", ".join(parts) if parts else "no test masks"
+    loo = shape["leave_one_out"]
+    return head + ("" if loo is None else f"; leave-one-out estimate (hull of the other training masks at "
+                                          f"each training camera) {loo['iou']:.3f}")
 
 
 def stage_times(ws: Workspace) -> list[dict[str, Any]]:
@@ -121,19 +161,23 @@ def fmt(v: float | None, nd: int = 3) -> str:
 
 def write_report(run: StageRun, times: list[dict[str, Any]], coarse: dict, fine: dict, eval_s: float,
                  lpips_note: str | None, curves: dict[str, list[tuple[float, float]]] | None = None,
-                 baseline: dict | None = None) -> None:
+                 baseline: dict | None = None, shape: dict | None = None) -> None:
     total = (times[-1]["cumulative_s"] if times else 0.0) + eval_s
     lines = ["# wgs report: error against run time", "",
-             "| stage | wall time (s) | cumulative (s) | peak memory (MiB) | PSNR | SSIM | LPIPS |",
-             "| --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
+             "| stage | wall time (s) | cumulative (s) | peak memory (MiB) | PSNR | SSIM | LPIPS | silhouette IoU |",
+             "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for r in times:
         q = coarse if r["stage"] == "coarse" else fine if r["stage"] == "fine" else None
-        qs = [fmt(q["psnr"], 2), fmt(q["ssim"]), fmt(q["lpips"])] if q else ["", "", ""]
+        qs = ([fmt(q["psnr"], 2), fmt(q["ssim"]), fmt(q["lpips"]), fmt(q.get("silhouette_iou"))] if q
+              else ["", "", "", ""])
         lines.append(f"| {r['stage']} | {r['wall_time_s']:.1f} | {r['cumulative_s']:.1f} | "
                      f"{fmt(r['peak_memory_mb'], 0)} | " + " | ".join(qs) + " |")
-    lines.append(f"| eval | {eval_s:.1f} | {total:.1f} | | | | |")
+    lines.append(f"| eval | {eval_s:.1f} | {total:.1f} | | | | | |")
     lines += ["", f"Quality is measured on {fine.get('num_views')} test views (mean over views; "
                   "coarse = G_c, fine = G_f).", ""]
+    if shape is not None:
+        lines += [shape_line(coarse, fine, shape) + ".",
+                  "Silhouette: " + SILHOUETTE_DOC + ".", ""]
     if lpips_note:
         lines += [f"LPIPS not computed: {lpips_note}", ""]
     atomic_write_bytes(run.path("report.md"), "\n".join(lines).encode())
@@ -205,8 +249,15 @@ def write_html(run: StageRun, ws: Workspace, frames, bg, pers: dict, results: di
         out = run.path("sheets", f"{label}_{name}")
         write_png(out, sheet)
         sheets.append((label, name, out))
+    outlines = []
+    iou = per_fine.get("silhouette_iou", {})
+    for name in sorted(iou, key=iou.get)[:3]:
+        if (p := run.path("outlines", name)).is_file():
+            outlines.append((f"IoU {iou[name]:.3f}", name, p))
     notes = [f"Quality on {results['fine'].get('num_views')} test views (mean over views); coarse = G_c, "
              f"fine = G_f. Evaluation took {eval_s:.0f} s."]
+    if results.get("shape") is not None:
+        notes.append(shape_line(results["coarse"], results["fine"], results["shape"]) + ".")
     if gain is not None:
         notes.append(f"Repair gain at the test poses: {gain['gain_db']:+.2f} dB (G_c render "
                      f"{gain['psnr_render']:.2f} -> repaired {gain['psnr_repaired']:.2f} dB).")
@@ -222,7 +273,7 @@ def write_html(run: StageRun, ws: Workspace, frames, bg, pers: dict, results: di
                       coarse=results["coarse"], fine=results["fine"], per_fine=per_fine,
                       per_coarse=pers.get("coarse", {}), sheets=sheets, plot=run.path("error_vs_time.png"),
                       contact_sheet=contact if contact.is_file() else None, notes=notes,
-                      turntable=run.path("turntable.gif"))
+                      turntable=run.path("turntable.gif"), outlines=outlines)
 
 
 def train_baseline(run: StageRun, ws: Workspace, scene, times: list[dict[str, Any]], device: torch.device,
@@ -283,7 +334,8 @@ def evaluate(run: StageRun, ws: Workspace, cfg: EvalConfig, device: torch.device
         else:
             splats, _ = load_checkpoint(ws.stage_dir(st) / CKPT, scene.norm, device)
         out = run.path("renders", "x").parent if key == "fine" else None
-        per = evaluate_model(splats, frames, device, bg, lpips_fn, out, on_view=repair_gain,
+        outlines = run.path("outlines", "x").parent if key == "fine" else None
+        per = evaluate_model(splats, frames, device, bg, lpips_fn, out, on_view=repair_gain, outline_dir=outlines,
                              desc=f"eval {st}" + (" and the repair gain" if repair_gain else ""))
         if key == "fine":
             final_splats = splats  # the turntable renders it again, without a second load
@@ -300,9 +352,13 @@ def evaluate(run: StageRun, ws: Workspace, cfg: EvalConfig, device: torch.device
         per = evaluate_model(b_splats, frames, device, bg, lpips_fn, desc="eval baseline")
         results["baseline_3dgs"] = {**summarise(per), **b_record,
                                     "num_gaussians": int(b_splats["means"].shape[0])}
+    shape = shape_reference(scene, frames, cfg.hull_resolution)
+    if shape is not None:
+        atomic_write_json(run.path("per_view_shape.json"), {k: shape.pop(f"{k}_per_view")
+                                                             for k in ("hull_test", "leave_one_out")})
     res = {**results["fine"], "final_model": final, "coarse": results["coarse"],
            "baseline_3dgs": results.get("baseline_3dgs"),
-           "repair_gain": gain,
+           "repair_gain": gain, "shape": shape,
            "lpips_net": cfg.lpips_net if lpips_fn else None,
            "lpips_unavailable": lpips_note, "metrics": METRICS_DOC,
            "lpips_weights": lpips_fn.sources if lpips_fn else None,
@@ -319,11 +375,11 @@ def evaluate(run: StageRun, ws: Workspace, cfg: EvalConfig, device: torch.device
     res["curves"] = curve_points(ws, stage_times(ws), run.path("baseline", CURVE) if cfg.baseline else None)
     atomic_write_json(run.path(RESULTS), res)
     write_report(run, stage_times(ws), results["coarse"], results["fine"], time.perf_counter() - t0,
-                 lpips_note, res["curves"], results.get("baseline_3dgs"))
+                 lpips_note, res["curves"], results.get("baseline_3dgs"), shape)
     if cfg.turntable_frames > 0:
         write_gif(run.path("turntable.gif"), [render_frame(final_splats, f, device, bg)[0].numpy()
                                               for f in orbit_frames(scene.train, cfg.turntable_frames)])
-    write_html(run, ws, frames, bg, pers, results, time.perf_counter() - t0, lpips_note, gain)
+    write_html(run, ws, frames, bg, pers, {**results, "shape": shape}, time.perf_counter() - t0, lpips_note, gain)
     run.record.update({"psnr": res["psnr"], "ssim": res["ssim"], "lpips": res["lpips"],
                        "coarse_psnr": results["coarse"]["psnr"]})
     c, f = results["coarse"], results["fine"]
@@ -333,6 +389,8 @@ def evaluate(run: StageRun, ws: Workspace, cfg: EvalConfig, device: torch.device
         b = results["baseline_3dgs"]
         lines.append(f"eval: plain 3DGS for the same training time ({b['train_seconds']:.0f} s): "
                      f"PSNR {fmt(b['psnr'], 2)} dB, SSIM {fmt(b['ssim'])}")
+    if shape is not None:
+        lines.append("eval: " + shape_line(c, f, shape))
     if gain is not None:
         lines.append(f"eval: repair gain at the test poses {gain['gain_db']:+.2f} dB (render {gain['psnr_render']:.2f}"
                      f" -> repaired {gain['psnr_repaired']:.2f} dB, {gain['views_improved']}/{gain['num_views']} "

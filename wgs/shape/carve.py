@@ -1,0 +1,93 @@
+"""Carving the visual hull with predicted silhouettes at pseudo views, never against a real mask.
+
+A voxel goes when enough of the pseudo views that see it call its pixel background with high
+confidence (object probability under `empty_below` after growing the prediction by `dilate_px`).
+At most `max_carve` of the hull goes per call, the most certain first. Real masks are evidence
+the predictions cannot overrule: every pixel of a real mask that the hull covered stays covered,
+by restoring the carved voxels on its ray.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ..scene.camera import Camera
+from .hull import HullGrid, box_rays, march, pixel_lookup, silhouette
+
+
+@dataclass
+class CarveParams:
+    """Thresholds of `carve`, the one place their defaults live."""
+
+    empty_below: float = 0.1  # a pixel calls a voxel background when its object probability is under this
+    dilate_px: int = 2  # predicted silhouettes are grown by this many pixels first
+    min_views: int = 2  # pseudo views that must call a voxel background
+    # ... and at least this fraction of the pseudo views that see it (a voxel outside the object is
+    # outside the silhouettes of the views that see it in profile, often a minority)
+    min_fraction: float = 0.2
+    max_carve: float = 0.5  # at most this fraction of the hull's voxels goes in one call
+
+
+def background_votes(grid: HullGrid, views: list[Camera], object_prob: list[torch.Tensor], params: CarveParams
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
+    """For each occupied voxel (in occ.nonzero order): how many views see it [M] and how many call
+    it background [M]."""
+    pts = grid.centres()[grid.occ.reshape(-1)]
+    seen = torch.zeros(pts.shape[0], dtype=torch.int32)
+    empty = torch.zeros(pts.shape[0], dtype=torch.int32)
+    k = 2 * params.dilate_px + 1
+    for cam, prob in zip(views, object_prob, strict=True):
+        grown = torch.nn.functional.max_pool2d(prob[None, None].float(), k, 1, params.dilate_px)[0, 0]
+        inside, idx = pixel_lookup(cam, pts)
+        seen += inside.int()
+        empty += (inside & (grown.reshape(-1)[idx] < params.empty_below)).int()
+    return seen, empty
+
+
+def carve(grid: HullGrid, views: list[Camera], object_prob: list[torch.Tensor], real: list,
+          params: CarveParams | None = None) -> tuple[HullGrid, dict[str, int]]:
+    """The hull with the voxels the predictions call background removed.
+
+    views / object_prob: pseudo cameras and their predicted object probability [H, W] in [0, 1];
+    real: the training frames (with masks) whose covered mask pixels must stay covered.
+    Returns the carved grid and counts (voxels before, carved, restored for the real masks).
+    """
+    params = params or CarveParams()
+    flat = grid.occ.reshape(-1)
+    occupied = flat.nonzero()[:, 0]
+    seen, empty = background_votes(grid, views, object_prob, params)
+    ratio = empty.float() / seen.clamp_min(1).float()
+    drop = (empty >= params.min_views) & (ratio >= params.min_fraction)
+    limit = int(params.max_carve * occupied.numel())
+    if int(drop.sum()) > limit:  # the most certain first
+        order = torch.argsort(torch.where(drop, ratio, torch.full_like(ratio, -1.0)), descending=True, stable=True)
+        drop = torch.zeros_like(drop)
+        drop[order[:limit]] = True
+    new = flat.clone()
+    new[occupied[drop]] = False
+    carved = grid.with_occupancy(new)
+    restored = keep_real_coverage(grid, carved, real)
+    return carved, {"voxels": int(occupied.numel()), "carved": int(drop.sum()), "restored": restored}
+
+
+def keep_real_coverage(before: HullGrid, after: HullGrid, real: list) -> int:
+    """Restore, in place in `after`, the carved voxels on the ray of every real mask pixel that
+    `before` covered and `after` does not. Returns how many voxels came back."""
+    occ_after = after.occ.reshape(-1)
+    carved = before.occ.reshape(-1) & ~occ_after
+    restored = 0
+    for f in real:
+        was = silhouette(before, f)[0] & (f.mask > 0.5)
+        for _ in range(3):  # the fast path's float64 samples may name a neighbour of the reference's
+            lost = (was & ~silhouette(after, f)[0]).reshape(-1).nonzero()[:, 0]
+            if lost.numel() == 0:
+                break
+            for _, vox, _ in march(after, box_rays(after, f, lost)):
+                v = vox[vox >= 0].unique()
+                v = v[carved[v]]
+                occ_after[v] = True
+                carved[v] = False
+                restored += int(v.numel())
+    return restored

@@ -1,0 +1,211 @@
+"""The visual hull as an occupancy grid, and what it looks like from any camera.
+
+A voxel is occupied when its centre projects inside enough training masks (all of them, or all
+but `tolerate`). Its silhouette and depth at a camera come from marching each pixel's ray through
+the grid at half a voxel's step: a pixel is covered when one of its samples lands in an occupied
+voxel. The same marching names the voxels a pixel's ray crosses, which carving uses to keep every
+real mask pixel covered.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import torch
+
+from ..errors import InputError
+from ..scene.camera import Camera
+
+EMPTY_HULL = ("the visual hull of the training masks is empty: the training views share no object region. "
+              "Check that the masks are white on the object, that every training view sees it, and that the "
+              "poses are right (camera-to-world vs world-to-camera, OpenGL vs OpenCV axes)")
+
+
+def project_points(points: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """[N, 3] -> pixel coordinates [N, 2] (pixel centres at +0.5) and depth [N]."""
+    p = points @ viewmat[:3, :3].T + viewmat[:3, 3]
+    z = p[:, 2]
+    uv = (p @ K.T)[:, :2] / z.clamp_min(1e-9)[:, None]
+    return uv, z
+
+
+def pixel_lookup(camera: Camera, points: torch.Tensor, near: float = 0.01) -> tuple[torch.Tensor, torch.Tensor]:
+    """Which pixel each point [N, 3] falls in: (inside [N] bool: in front and in the frame,
+    flat pixel index [N] (0 where not inside))."""
+    uv, z = project_points(points, camera.viewmat, camera.K)
+    u, v = torch.floor(uv[:, 0]).long(), torch.floor(uv[:, 1]).long()
+    inside = (z > near) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+    return inside, torch.where(inside, v * camera.width + u, torch.zeros_like(u))
+
+
+@dataclass
+class HullGrid:
+    """Occupancy on a regular grid of R³ voxels over the box lo..hi (normalised world).
+
+    Attributes:
+        lo, hi: [3] corners of the box.
+        occ: [R, R, R] bool, indexed (x, y, z).
+    """
+
+    lo: torch.Tensor
+    hi: torch.Tensor
+    occ: torch.Tensor
+
+    @property
+    def resolution(self) -> int:
+        return self.occ.shape[0]
+
+    @property
+    def cell(self) -> torch.Tensor:
+        return (self.hi - self.lo) / self.resolution
+
+    def centres(self) -> torch.Tensor:
+        """[R³, 3] voxel centres in the order of occ.reshape(-1)."""
+        return grid_centres(self.lo, self.hi, self.resolution)
+
+    def voxel_index(self, points: torch.Tensor) -> torch.Tensor:
+        """Flat index [N] of the voxel holding each point, -1 outside the box."""
+        ijk = torch.floor((points - self.lo) / self.cell).long()
+        inside = ((ijk >= 0) & (ijk < self.resolution)).all(-1)
+        r = self.resolution
+        flat = (ijk[:, 0] * r + ijk[:, 1]) * r + ijk[:, 2]
+        return torch.where(inside, flat, torch.full_like(flat, -1))
+
+    def with_occupancy(self, occ: torch.Tensor) -> HullGrid:
+        return HullGrid(self.lo, self.hi, occ.reshape(self.occ.shape))
+
+
+def grid_centres(lo: torch.Tensor, hi: torch.Tensor, resolution: int) -> torch.Tensor:
+    axes = [(torch.arange(resolution, dtype=torch.float32) + 0.5) / resolution * (hi[i] - lo[i]) + lo[i]
+            for i in range(3)]
+    return torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+
+
+def mask_votes(frames, points: torch.Tensor, near: float = 0.01) -> tuple[torch.Tensor, torch.Tensor]:
+    """For points [N, 3]: in how many frames' masks each falls [N] int, and the mean colour [N, 3]
+    of the frames whose mask holds it (frames need image and mask)."""
+    votes = torch.zeros(points.shape[0], dtype=torch.int32)
+    col_sum = torch.zeros(points.shape[0], 3)
+    for f in frames:
+        inside, idx = pixel_lookup(f, points, near)
+        in_mask = inside & (f.mask.reshape(-1)[idx] > 0.5)
+        votes += in_mask.int()
+        col_sum += torch.where(in_mask[:, None], f.image.reshape(-1, 3)[idx], torch.zeros(1, 3))
+    return votes, col_sum / votes.clamp_min(1)[:, None].float()
+
+
+def default_tolerance(num_views: int) -> int:
+    """Masks a hull voxel may fall outside of: one with 3 or more views (a bad mask then cannot cut
+    the object, GaussianObject's rule), else none."""
+    return 1 if num_views >= 3 else 0
+
+
+def visual_hull_grid(frames, resolution: int = 96, extent: float = 1.0, near: float = 0.01,
+                     tolerate: int | None = None) -> tuple[HullGrid, torch.Tensor]:
+    """The hull of the frames' masks over [-extent, extent]³: a 32³ pass finds its bounding box, a
+    second carves that box at `resolution`. Returns the grid and the voxels' mean colours [R³, 3];
+    raises InputError when it is empty."""
+    tolerate = default_tolerance(len(frames)) if tolerate is None else tolerate
+    need = len(frames) - tolerate
+    lo, hi = torch.full((3,), -extent), torch.full((3,), extent)
+    coarse = 32
+    pts = grid_centres(lo, hi, coarse)
+    votes, _ = mask_votes(frames, pts, near)
+    kept = pts[votes >= need]
+    if kept.shape[0]:
+        cell = (hi - lo) / coarse
+        lo, hi = torch.maximum(kept.min(0).values - cell, lo), torch.minimum(kept.max(0).values + cell, hi)
+    votes, colours = mask_votes(frames, grid_centres(lo, hi, resolution), near)
+    occ = (votes >= need).reshape(resolution, resolution, resolution)
+    if not occ.any():
+        raise InputError(EMPTY_HULL)
+    return HullGrid(lo, hi, occ), colours
+
+
+def surface(grid: HullGrid) -> torch.Tensor:
+    """[R³] bool: occupied voxels with an empty 26-neighbour (what renders see)."""
+    pad = torch.nn.functional.pad(grid.occ[None, None].float(), (1, 1, 1, 1, 1, 1))
+    interior = -torch.nn.functional.max_pool3d(-pad, 3, stride=1)[0, 0] > 0.5
+    return (grid.occ & ~interior).reshape(-1)
+
+
+def _pixel_rays(camera: Camera, pixels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Origin [3] and directions [P, 3] (world, scaled so that camera depth = t) of flat pixel indices."""
+    u = (pixels % camera.width).float() + 0.5
+    v = torch.div(pixels, camera.width, rounding_mode="floor").float() + 0.5
+    d_cam = torch.stack([u, v, torch.ones_like(u)], -1) @ torch.linalg.inv(camera.K).T
+    R = camera.viewmat[:3, :3]
+    return camera.center, d_cam @ R  # R^T d for each row
+
+
+@dataclass
+class Rays:
+    """Pixel rays that meet the grid's box: flat pixel indices [P], origin [3], directions [P, 3]
+    (world, scaled so that camera depth = t), entry / exit t [P], and the step dt [P] that is half a
+    voxel along each ray."""
+
+    pixels: torch.Tensor
+    origin: torch.Tensor
+    dirs: torch.Tensor
+    t_in: torch.Tensor
+    t_out: torch.Tensor
+    dt: torch.Tensor
+
+
+def box_rays(grid: HullGrid, camera: Camera, pixels: torch.Tensor | None = None) -> Rays:
+    """The rays of `pixels` (flat indices, default all) that meet the grid's box (slab test)."""
+    if pixels is None:
+        pixels = torch.arange(camera.width * camera.height)
+    o, d = _pixel_rays(camera, pixels)
+    inv = 1.0 / torch.where(d.abs() < 1e-12, torch.full_like(d, 1e-12), d)
+    t0, t1 = (grid.lo - o) * inv, (grid.hi - o) * inv
+    t_in = torch.minimum(t0, t1).max(-1).values.clamp_min(0.0)
+    t_out = torch.maximum(t0, t1).min(-1).values
+    hits = t_out > t_in
+    d = d[hits]
+    return Rays(pixels[hits], o, d, t_in[hits], t_out[hits], 0.5 * float(grid.cell.min()) / d.norm(dim=-1))
+
+
+def march(grid: HullGrid, rays: Rays, chunk: int = 4096) -> Iterator[tuple[slice, torch.Tensor, torch.Tensor]]:
+    """Samples t_in + (k + 0.5) dt <= t_out along the rays, in chunks: yields (the chunk's slice of
+    the rays, voxel index [P, S] (-1 past the exit or outside the box), depth [P, S])."""
+    for start in range(0, rays.pixels.shape[0], chunk):
+        sl = slice(start, start + chunk)
+        t_in, t_out, dt = rays.t_in[sl], rays.t_out[sl], rays.dt[sl]
+        n = max(1, int(math.ceil(float(((t_out - t_in) / dt).max()))))
+        t = t_in[:, None] + (torch.arange(n, dtype=torch.float32)[None] + 0.5) * dt[:, None]
+        pts = rays.origin + t[..., None] * rays.dirs[sl, None, :]
+        vox = grid.voxel_index(pts.reshape(-1, 3)).reshape(t.shape)
+        yield sl, torch.where(t <= t_out[:, None], vox, torch.full_like(vox, -1)), t
+
+
+def silhouette_torch(grid: HullGrid, camera: Camera) -> tuple[torch.Tensor, torch.Tensor]:
+    """Reference of `silhouette`: every ray sampled to the box's exit."""
+    rays = box_rays(grid, camera)
+    occ = torch.cat([grid.occ.reshape(-1), torch.zeros(1, dtype=torch.bool)])  # index -1 -> empty
+    depth = torch.full((camera.height * camera.width,), math.inf)
+    for sl, vox, t in march(grid, rays):
+        hit = occ[vox]
+        first = t.gather(1, hit.float().argmax(-1, keepdim=True))[:, 0]
+        depth[rays.pixels[sl]] = torch.where(hit.any(-1), first, torch.full_like(first, math.inf))
+    depth = depth.reshape(camera.height, camera.width)
+    return torch.isfinite(depth), depth
+
+
+def silhouette(grid: HullGrid, camera: Camera) -> tuple[torch.Tensor, torch.Tensor]:
+    """The hull seen from `camera`: coverage [H, W] bool and depth [H, W] of the first occupied
+    sample (inf where uncovered). CPU numba kernel; `silhouette_torch` is its reference."""
+    from .march_numba import first_hit
+
+    rays = box_rays(grid, camera)
+    depth = torch.full((camera.height * camera.width,), math.inf)
+    if rays.pixels.numel():
+        hit = first_hit(grid.occ.reshape(-1).to(torch.uint8).numpy(), grid.resolution,
+                        grid.lo.double().numpy(), grid.cell.double().numpy(), rays.origin.double().numpy(),
+                        rays.dirs.double().numpy(), rays.t_in.double().numpy(), rays.t_out.double().numpy(),
+                        rays.dt.double().numpy())
+        depth[rays.pixels] = torch.from_numpy(hit)
+    depth = depth.reshape(camera.height, camera.width)
+    return torch.isfinite(depth), depth

@@ -1,0 +1,47 @@
+"""Silhouette scores: a predicted outline against the true one, and the leave-one-out estimate of
+the hull's test-view silhouettes that needs no test views."""
+
+from __future__ import annotations
+
+import statistics
+
+import torch
+
+from .hull import silhouette, visual_hull_grid
+
+SILHOUETTE_DOC = ("silhouette: rendered opacity > 0.5 against the true mask > 0.5; iou = |P & T| / |P | T|, "
+                  "excess = |P - T| / |T| (area the model has too much), missed = |T - P| / |T|")
+
+
+def silhouette_scores(pred: torch.Tensor, true: torch.Tensor) -> dict[str, float]:
+    """IoU, excess and missed area (fractions of the true area) of two [H, W] bool masks. An empty
+    truth scores IoU 1 when the prediction is empty too, else 0."""
+    pred, true = pred.bool(), true.bool()
+    inter = int((pred & true).sum())
+    union = int((pred | true).sum())
+    area = int(true.sum())
+    return {"iou": inter / union if union else 1.0,
+            "excess": int((pred & ~true).sum()) / max(area, 1),
+            "missed": int((true & ~pred).sum()) / max(area, 1)}
+
+
+def mean_scores(per_view: dict[str, dict[str, float]]) -> dict[str, float] | None:
+    """Means over views of `silhouette_scores` ({view: scores}); None without views."""
+    if not per_view:
+        return None
+    keys = next(iter(per_view.values())).keys()
+    return {k: statistics.fmean(s[k] for s in per_view.values()) for k in keys}
+
+
+def leave_one_out(frames, resolution: int = 96, extent: float = 1.0, tolerate: int = 0
+                  ) -> dict[str, dict[str, float]]:
+    """For each training frame (with a mask): the hull of the other frames' masks seen from its
+    camera against its own mask. How fat a hull of N - 1 views is at a view it never saw estimates
+    how fat the N-view hull is at test views, without test views. {frame name: scores}."""
+    out = {}
+    for i, f in enumerate(frames):
+        others = frames[:i] + frames[i + 1:]
+        grid, _ = visual_hull_grid(others, resolution, extent, tolerate=tolerate)
+        cover, _ = silhouette(grid, f)
+        out[f.name] = silhouette_scores(cover, f.mask > 0.5)
+    return out
