@@ -295,3 +295,38 @@ def test_fine_records_whether_its_lpips_term_ran(tiny):
     _, _, ws, _ = tiny
     term = ws.manifest("fine")["lpips_term"]
     assert term["used"] is False and "not found" in term["why"]
+
+
+def test_silhouette_model_carves_the_hull_and_fine_starts_there(tiny, tmp_path):
+    """With an S at hand (here one that calls everything background), the repair stage writes S's
+    silhouettes and a carved hull that still covers every real mask pixel, and G_f starts from it."""
+    import torch
+
+    from wgs.config import CARVED_HULL, VIEWS
+    from wgs.models.silhouette_net import SilhouetteNet, SilhouetteNetConfig
+    from wgs.models.storage import save_model
+    from wgs.scene.dataset import load_prepared
+    from wgs.shape.hull import load_grid, silhouette, visual_hull_grid
+
+    scene, cfg, ws0, _ = tiny
+    net = SilhouetteNet(SilhouetteNetConfig(channels=8))
+    torch.nn.init.zeros_(net.out.weight)
+    torch.nn.init.constant_(net.out.bias, -8.0)  # background everywhere, sure of it
+    save_model(tmp_path / "S", net)
+    ws = Workspace(tmp_path / "ws")
+    shutil.copytree(ws0.root, ws.root)
+    cfg2 = tmp_path / "wgs.toml"
+    cfg2.write_text(cfg.read_text().replace("[repair]\n", f"[repair]\nsilhouette_model = '{tmp_path / 'S'}'\n"))
+    run_all(cfg2, ws.root, scene)
+    views = json.loads((ws.stage_dir("repair") / VIEWS).read_text())["views"]
+    assert all((ws.stage_dir("repair") / v["silhouette"]).is_file() for v in views)
+    counts = ws.manifest("repair")["carving"]
+    assert counts["carved"] > 0 and counts["restored"] > 0  # S wanted it all; the real masks kept some
+    assert ws.manifest("fine")["start"] == "carved hull"
+    prepared = load_prepared(ws.stage_dir("scene"))
+    carved = load_grid(ws.stage_dir("repair") / CARVED_HULL)
+    full, _ = visual_hull_grid(prepared.train, carved.resolution, tolerate=0)
+    for f in prepared.train:
+        was = silhouette(full, f)[0] & (f.mask > 0.5)
+        assert not (was & ~silhouette(carved, f)[0]).any()
+    assert math.isfinite(json.loads((ws.stage_dir("eval") / "results.json").read_text())["psnr"])

@@ -1,5 +1,5 @@
 """The house plan, checked: stages import the shared stage module and the layers below, never
-each other (issue 14)."""
+each other."""
 
 import ast
 from pathlib import Path

@@ -169,6 +169,19 @@ def test_corpus_pairs_train_chain(tmp_path):
     assert rec["pairs"] == 8 and rec["holdout_pairs"] == 4
     D, d_cfg = load_model(tmp_path / "prior" / "D")
     assert d_cfg["start"] == "corrupted" and d_cfg["t_max"] == cfg.t_max
+    # the same pairs carry the hull channels S trains on; the hull holds the object's alpha
+    assert arrays["hull"].shape == (4, 32, 32) and arrays["hull_depth"].dtype == np.float16
+    obj_px = arrays["ref_alpha"] > 127
+    assert (arrays["hull"][obj_px] > 127).mean() > 0.95
+    from wgs.models.silhouette_net import SilhouetteNet
+    from wgs.prior.train_shape import ShapeTrainConfig, load_shape_pairs, train_silhouette
+
+    data = load_shape_pairs(pairs)
+    assert data["inputs"].shape == (8, 6, 32, 32) and int(data["holdout"].sum()) == 4
+    S, curve = train_silhouette(data, ShapeTrainConfig(channels=8, steps=3, batch=2, eval_every=2), torch.device("cpu"),
+                                log=lambda m: None)
+    assert isinstance(S, SilhouetteNet) and curve["step"] == [2, 3]
+    assert 0 <= curve["held_out"][-1]["S_iou"] <= 1 and curve["held_out"][-1]["hull_missed"] < 0.05
 
 
 def test_prior_finetune_keeps_the_prior_unless_beaten():

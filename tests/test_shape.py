@@ -152,3 +152,24 @@ def test_grid_centres_and_index_agree():
     c = grid_centres(lo, hi, 5)
     assert torch.equal(grid.voxel_index(c), torch.arange(125))
     assert grid.voxel_index(torch.tensor([[5.0, 0.5, 2.5]])).item() == -1
+
+
+def test_silhouette_net_tiny_config_runs_at_any_size():
+    from wgs.models.silhouette_net import SilhouetteNet, SilhouetteNetConfig
+    from wgs.shape.features import predict_object
+
+    net = SilhouetteNet(SilhouetteNetConfig(channels=8))
+    assert net(torch.rand(2, 6, 37, 50)).shape == (2, 1, 37, 50)
+    prob = predict_object(net, torch.rand(6, 200, 150))  # run at the working size, resized back
+    assert prob.shape == (200, 150) and ((prob >= 0) & (prob <= 1)).all()
+
+
+def test_hull_channels_depth_is_centred(mug_hull):
+    from wgs.shape.features import hull_channels
+
+    _, grid = mug_hull
+    hull, depth = hull_channels(grid, camera(30, 20))
+    assert set(hull.unique().tolist()) == {0.0, 1.0} and (depth[hull == 0] == 0).all()
+    # first hits lie within half the box's diagonal of its centre, most of them before it
+    front = depth[hull == 1]
+    assert (front.abs() <= 1).all() and front.median() < 0

@@ -1,4 +1,4 @@
-"""Thread discipline (issue 13): the settings that keep two wgs processes from spinning against
+"""Thread discipline: the settings that keep two wgs processes from spinning against
 each other stay in place, and the thread count follows --threads / WGS_THREADS / the cores."""
 
 from __future__ import annotations

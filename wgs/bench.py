@@ -190,7 +190,7 @@ CONTENTION_VARIANTS: dict[str, dict[str, str | None]] = {
 
 def bench_contention(prepared: str, root: str, iterations: int, variants: tuple[str, ...]) -> dict:
     """Two `wgs coarse` runs started together against one alone, per thread setting: the slowdown
-    a user sees when wgs shares the machine (issue 13). One after the other, nothing else running."""
+    a user sees when wgs shares the machine. One after the other, nothing else running."""
     base = Path(root) / "contention"
     base.mkdir(parents=True, exist_ok=True)
     rows = []

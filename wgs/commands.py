@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from .config import CoarseConfig
 from .errors import WgsError
 from .progress import log
 
@@ -22,7 +23,7 @@ def register(cli, stage_common, workspace_option) -> None:
     @click.option("--sh-degree", type=int, default=None, help="Spherical-harmonics degree (0-3).")
     @click.option("--ensemble", type=click.IntRange(min=1), default=None,
                   help="Coarse models from consecutive seeds; the repair averages their repaired renders "
-                       "(default 4; 1: G_c alone).")
+                       f"(default {CoarseConfig.ensemble}; 1: G_c alone).")
     @stage_common
     @click.pass_obj
     def coarse(obj, iterations, max_seconds, sh_degree, ensemble, force, preset):
@@ -85,14 +86,16 @@ def register(cli, stage_common, workspace_option) -> None:
                   help="SDEdit strength (noise level) of a from-scratch D's repair (a prior's D runs one step).")
     @click.option("--steps", type=int, default=None, help="DDIM steps of a from-scratch D's repair.")
     @click.option("--views-per-train", type=int, default=None, help="Novel viewpoints per training view (arc poses).")
+    @click.option("--carve/--no-carve", default=None,
+                  help="The silhouette model S carves the visual hull at the pseudo views (default: on).")
     @stage_common
     @click.pass_obj
-    def repair(obj, poses, num_views, strength, steps, views_per_train, force, preset):
+    def repair(obj, poses, num_views, strength, steps, views_per_train, carve, force, preset):
         """Render G_c at novel views and repair them with D and U -> pseudo references."""
         from .stages.s4_repair import run_repair
 
         cfg = obj.config("repair", preset, poses=poses, num_views=num_views, strength=strength, steps=steps,
-                         views_per_train=views_per_train)
+                         views_per_train=views_per_train, carve=carve)
         run_repair(obj.ws(), cfg, obj.torch_device(), obj.seed, force=force)
 
     @cli.command()
@@ -145,8 +148,10 @@ def register(cli, stage_common, workspace_option) -> None:
                   help="Repair prior of D and U: builtin (default), none (from scratch), or a folder.")
     @click.option("--ensemble", type=click.IntRange(min=1), default=None,
                   help="Coarse models from consecutive seeds; the repair averages their repaired renders "
-                       "(default 4; 1: G_c alone).")
+                       f"(default {CoarseConfig.ensemble}; 1: G_c alone).")
     @click.option("--force-repair", is_flag=True, help="Run the repair stages even with many training views.")
+    @click.option("--carve/--no-carve", default=None,
+                  help="The silhouette model S carves the visual hull at the pseudo views (default: on).")
     @click.option("--baseline", is_flag=True, default=None,
                   help="Also train plain 3DGS for the same training time and plot its curve (eval).")
     @click.option("--lpips-weights", type=click.Path(path_type=str), default=None,
@@ -155,7 +160,7 @@ def register(cli, stage_common, workspace_option) -> None:
                   help="Photos without poses: feature matching for structure-from-motion.")
     @stage_common
     @click.pass_obj
-    def all_(obj, scene, views, downscale, strategy, domain, no_u, prior, ensemble, force_repair, baseline,
+    def all_(obj, scene, views, downscale, strategy, domain, no_u, prior, ensemble, force_repair, carve, baseline,
              lpips_weights, matcher, force, preset):
         """Run every stage on SCENE (each skipped when up to date) and print the summary."""
         from .pipeline import print_summary, run_all
@@ -170,6 +175,7 @@ def register(cli, stage_common, workspace_option) -> None:
                      "coarse": {"ensemble": ensemble},
                      "mask_data": {"strategy": strategy},
                      "finetune": {"domain": domain, "use_u": False if no_u else None, "prior": prior},
+                     "repair": {"carve": carve},
                      "fine": {"lpips_weights": lpips_weights},
                      "eval": {"baseline": baseline, "lpips_weights": lpips_weights}}
         outcomes = run_all(obj, scene, preset, force, force_repair, overrides)

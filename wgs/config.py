@@ -20,6 +20,7 @@ except ModuleNotFoundError:  # Python 3.10
 
 from .errors import InputError
 from .gaussians.strategy import DensifyParams
+from .shape.carve import CarveParams
 
 
 @dataclass
@@ -52,7 +53,7 @@ class TrainConfig(DensifyParams):
     ssim_weight: float = 0.2
     mask_weight: float = 0.1
     random_background: bool = True
-    init_points: int = 5000  # visual-hull points at most (more fits the training views worse at equal time)
+    init_points: int = 5000  # visual-hull points at most
     hull_resolution: int = 96
     floater_every: int = 500
     floater_k: int = 8
@@ -75,10 +76,7 @@ class CoarseConfig(CurveConfig, TrainConfig):
     iterations: int = 1500
     # coarse models trained with seeds seed .. seed + ensemble - 1 (the first is G_c); the repair
     # averages their repaired renders: their sparse-view artifacts differ, the object does not
-    # (lego, 4 views, 40 test poses: one render 19.20 dB, the mean of 4 repaired renders 20.49;
-    # G_f 20.25 / 20.32 dB with 4 / 6 models; with a pseudo weight of 2 and 2000 fine iterations
-    # 20.48 / 20.57 with 6 / 8; `wgs all` end to end 20.54 / 20.58 / 20.57 with 8 / 10 / 12; 48 s
-    # each alone, 64 s each two side by side in one-thread processes, see s1_coarse.side_by_side)
+    # (docs/repair-prior.md)
     ensemble: int = 10
 
 
@@ -135,11 +133,14 @@ class FinetuneConfig:
 
 
 @dataclass
-class RepairConfig:
+class RepairConfig(CarveParams):
+    """Pseudo references at novel poses, and the silhouette model S's carving of the visual hull
+    there (its thresholds come from `shape.carve.CarveParams`)."""
+
     poses: str = "sphere"  # sphere: a Fibonacci band over the view sphere; arc: between neighbouring training views
     num_views: int = 24  # sphere: pseudo views in all
     # sphere: the band's elevations, from band_below degrees under the lowest training camera to
-    # band_above over the highest (lego, 6 models: 16 views to +25 degrees G_f 20.32 dB, 24 to +40 20.37)
+    # band_above over the highest
     band_below: float = 15.0
     band_above: float = 40.0
     views_per_train: int = 2  # arc: novel viewpoints per training view (spread over neighbour pairs)
@@ -148,8 +149,14 @@ class RepairConfig:
     strength: float = 0.5  # SDEdit: noise level the corrupted image is taken to before denoising
     steps: int = 10  # DDIM steps
     # D repairs each render under this many flips / transposes of it (1..8), averaged; ensemble
-    # members take different ones (lego, 40 test poses, 4 models: 1 -> 20.63 dB, 4 -> 20.65, 4x D's time)
+    # members take different ones, so D's errors differ between them
     symmetries: int = 1
+    # S predicts the object's silhouette at each pseudo view; the visual hull (every mask agreeing)
+    # is carved where S is sure of background, G_f starts from the carved hull and learns opacity
+    # at the pseudo views from S. Needs masks and S's weights
+    carve: bool = True
+    silhouette_model: str = "builtin"  # builtin: wgs/prior/weights/S; or a folder holding S
+    hull_resolution: int = TrainConfig.hull_resolution  # voxels along the carved hull's box
 
 
 @dataclass
@@ -163,26 +170,17 @@ class LpipsWeightsConfig:
 class FineConfig(LpipsWeightsConfig, CurveConfig, TrainConfig):
     """Refinement of G_c on the real and the pseudo references."""
 
-    # from the hull on lego's 12-model references: 1500 iterations 20.575 dB in 89 s, 2500 20.609 in
-    # 168 s (session 9, 8 models: 20.538 / 20.585)
     iterations: int = 2500
     refine_start: int = 100
     refine_stop: int = 1000
     # where G_f starts: "hull" trains afresh from the visual-hull init on the real and pseudo views
-    # together, "coarse" refines G_c, "auto" is hull when the scene has masks (else no hull to start
-    # from). Fine stage only on one set of lego references, 4 views: from G_c 20.46 dB in 127 s,
-    # from the hull 20.54 / 20.53 (2 seeds) in 77 s; the example 20.55 / 20.57 -> 20.64 / 20.61;
-    # fox photos (no masks, random init) 15.37 / 15.09 -> 13.71 / 13.62
+    # together (G_c's 4-view artifacts are not dragged along), "coarse" refines G_c, "auto" is hull
+    # when the scene has masks (else there is no hull to start from)
     start: str = "auto"
-    # a pseudo view weighs as much as a real one; 2 measured (3 seeds each, same references): the
-    # example 20.55 -> 20.50 dB, fox photos 15.26 -> 14.93, lego (one seed) +0.03: not taken
-    pseudo_weight_start: float = 1.0
+    pseudo_weight_start: float = 1.0  # a pseudo view's weight against a real view's at the start
     pseudo_weight_end: float = 1.0  # reached at pseudo_until of the iterations; 0 after (real views only)
-    # GaussianObject stops the pseudo views at 0.7 with weight 0.5; keeping them to the end at full
-    # weight measured +0.16 dB on lego (19.33 -> 19.49, 4 views) and +0.10 dB on the example
-    pseudo_until: float = 1.0
-    # one pseudo-view step every k iterations (lego, 6 models: k = 2 G_f 20.34 dB in 100 s, k = 1 20.43 in 124 s)
-    pseudo_every: int = 1
+    pseudo_until: float = 1.0  # fraction of the iterations with pseudo views (GaussianObject: 0.7)
+    pseudo_every: int = 1  # one pseudo-view step every k iterations
     lpips_weight: float = 0.1  # LPIPS (VGG) on the pseudo views, used when its weights are on this machine
     rounds: int = 1  # > 1: the pseudo views are rendered from the refined model, repaired again, trained again
 
@@ -193,7 +191,6 @@ class EvalConfig(LpipsWeightsConfig):
     max_views: int | None = None  # evaluate on the first k test views only
     repair_gain: bool = True  # also repair G_c's renders at the test poses and score them (the repair's own gain)
     # at this many test poses spread evenly over them (0: all): each repairs every member's render
-    # (lego, 10 models: eval 200 s with all 200 poses, 63 s with 50; mean gain +1.638 vs +1.642 dB)
     repair_gain_views: int = 50
     # the visual hull's grid (voxels along its box's side) whose silhouettes are scored at the test
     # views and, leaving each training view out in turn, at the training views
@@ -240,7 +237,9 @@ CKPT = "ckpt.pt"  # coarse, fine: the model (normalised world) and its iteration
 PLY = "point_cloud.ply"  # coarse, fine: the model in the INRIA layout, world coordinates
 MEMBERS = "members"  # coarse: the ensemble's other models, members/ckpt_<i>.pt (i >= 1)
 INDEX = "index.json"  # mask_data: the corrupted / clean pairs
-VIEWS = "views.json"  # repair: the pseudo views' cameras and weights
+VIEWS = "views.json"  # repair: the pseudo views' cameras and weights (and S's silhouette files)
+SILHOUETTES = "silhouettes"  # repair: S's object probability at each pseudo view, PNG
+CARVED_HULL = "carved_hull.npz"  # repair: the visual hull carved with S's silhouettes (shape.hull.save_grid)
 RESULTS = "results.json"  # eval: metrics, times, the plain-3DGS baseline
 
 
@@ -255,7 +254,6 @@ _FAST_TRAIN = {"refine_start": 100, "refine_every": 50, "sh_degree": 1, "sh_incr
 
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "fast": {
-        # ensemble 2: example 20.44 / 20.53 / 20.48 dB with 1 / 2 / 4 models, fox 15.18 / 15.23 / 15.34
         "coarse": {**_FAST_TRAIN, "iterations": 400, "refine_stop": 300, "ensemble": 2},
         "mask_data": {**_FAST_TRAIN, "iterations": 300, "refine_stop": 250, "warmup": 100, "pair_every": 40,
                       "drift_period": 100.0},

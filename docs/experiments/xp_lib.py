@@ -1,4 +1,4 @@
-"""Helpers for session-12 experiments (not part of wgs)."""
+"""Helpers for the experiment scripts (not part of wgs)."""
 import dataclasses
 from pathlib import Path
 

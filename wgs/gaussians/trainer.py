@@ -185,7 +185,7 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
                 loss = loss + cfg.mask_weight * (a_err.mean() if weight is None else
                                                  (a_err * weight).sum() / weight.sum().clamp_min(1.0))
             if pseudo is not None and it % pseudo.every == 0 and pseudo.schedule(sched) > 0:
-                loss = loss + pseudo_loss(params, pseudo, it, sched, deg, device)
+                loss = loss + pseudo_loss(params, pseudo, it, sched, deg, device, gen, cfg)
             loss.backward()
             if not torch.isfinite(loss):
                 raise WgsError(f"{desc}: loss became non-finite at iteration {it}; nothing was saved")
@@ -228,16 +228,27 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
     return TrainResult(out, it, time.perf_counter() - t0, losses, curve, probe_s)
 
 
-def pseudo_loss(params: Splats, pseudo: PseudoViews, it: int, sched: int, deg: int, device: torch.device
-                ) -> torch.Tensor:
+def pseudo_loss(params: Splats, pseudo: PseudoViews, it: int, sched: int, deg: int, device: torch.device,
+                gen: torch.Generator, cfg: TrainConfig) -> torch.Tensor:
+    """L1 + L2 (+ LPIPS) against one pseudo reference. Where the frame has a mask (the silhouette
+    model's object probability), the reference is taken as the object's colour inside it and
+    composited on a background (random, as on the real views), and opacity learns the mask: pseudo
+    views then carve too."""
     j = (it // pseudo.every) % len(pseudo.frames)
     f = pseudo.frames[j]
+    bg, target = pseudo.background.to(device), f.image.to(device)
+    if f.mask is not None:
+        if cfg.random_background:
+            bg = torch.rand(3, generator=gen).to(device)
+        a = f.mask.to(device)[..., None]
+        target = target * a + bg * (1 - a)
     means, quats, scales, opac, sh = activate(params)
-    rgb, _, _ = rasterize(means, quats, scales, opac, sh[:, : (deg + 1) ** 2], f.viewmat.to(device), f.K.to(device),
-                          f.width, f.height, pseudo.background.to(device))
-    target = f.image.to(device)
+    rgb, alpha, _ = rasterize(means, quats, scales, opac, sh[:, : (deg + 1) ** 2], f.viewmat.to(device),
+                              f.K.to(device), f.width, f.height, bg)
     diff = rgb - target
     loss = diff.abs().mean() + diff.pow(2).mean()
+    if f.mask is not None and cfg.mask_weight > 0:
+        loss = loss + cfg.mask_weight * (alpha[..., 0] - f.mask.to(device)).abs().mean()
     if pseudo.lpips is not None and pseudo.lpips_weight > 0:
         perceptual = pseudo.lpips(rgb.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None]).mean()
         loss = loss + pseudo.lpips_weight * perceptual

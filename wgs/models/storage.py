@@ -13,8 +13,10 @@ from ..errors import InputError
 from ..io import atomic_path, atomic_write_json
 from .hf_unet import HFUNet, HFUNetConfig
 from .ll_denoiser import LLDenoiser, LLDenoiserConfig
+from .silhouette_net import SilhouetteNet, SilhouetteNetConfig
 
-CLASSES = {"LLDenoiser": (LLDenoiser, LLDenoiserConfig), "HFUNet": (HFUNet, HFUNetConfig)}
+CLASSES = {"LLDenoiser": (LLDenoiser, LLDenoiserConfig), "HFUNet": (HFUNet, HFUNetConfig),
+           "SilhouetteNet": (SilhouetteNet, SilhouetteNetConfig)}
 
 
 def save_model(folder: Path, model: torch.nn.Module, extra: dict | None = None) -> None:

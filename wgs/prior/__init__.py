@@ -1,7 +1,9 @@
-"""The repair prior: an object corpus rendered by our own code, real coarse-3DGS corruptions of it,
-and the pretrained D and U that `wgs finetune` starts from (weights shipped in `weights/`)."""
+"""The priors: an object corpus rendered by our own code, real coarse-3DGS corruptions of it, the
+pretrained D and U that `wgs finetune` starts from, and the silhouette model S that carves the
+visual hull (weights shipped in `weights/`)."""
 
 from pathlib import Path
 
 # the shipped prior: D/ and U/ (config.json + model.safetensors) and provenance.json
 WEIGHTS = Path(__file__).parent / "weights"
+WEIGHTS_S = WEIGHTS / "S"  # the silhouette model S: config.json, model.safetensors, provenance.json

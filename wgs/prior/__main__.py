@@ -14,6 +14,8 @@ from pathlib import Path
 
 import click
 
+from . import WEIGHTS_S
+
 DEFAULT_CACHE = Path(os.environ.get("WGS_PRIOR_CACHE", Path.home() / ".cache" / "wgs-prior"))
 
 
@@ -35,14 +37,20 @@ def main(ctx: click.Context, cache: Path) -> None:
 @click.option("--limit", type=int, default=None, help="render at most this many objects")
 @click.option("--size", default=128, show_default=True, help="image size in pixels")
 @click.option("--workers", default=1, show_default=True, help="one-thread processes")
+@click.option("--novel-elevations", default=None,
+              help="LO,HI degrees of the novel views (default -10,80; the shape corpus takes -85,85)")
 @click.pass_obj
 def corpus(cache: Path, mirror: Path, procedural: int, kitbash: int, first_seed: int, limit: int | None, size: int,
-           workers: int) -> None:
+           workers: int, novel_elevations: str | None) -> None:
     """Extract the snapshots and render every object into a Blender-format scene."""
-    from .corpus import build_corpus
+    from .corpus import NOVEL_ELEVATIONS, build_corpus
 
+    try:
+        lo, hi = (float(v) for v in novel_elevations.split(",")) if novel_elevations else NOVEL_ELEVATIONS
+    except ValueError:
+        raise click.BadParameter("two numbers LO,HI", param_hint="--novel-elevations") from None
     done = build_corpus(mirror, cache, procedural, limit, size, first_procedural=first_seed, workers=workers,
-                        n_kitbash=kitbash)
+                        n_kitbash=kitbash, novel_elevations=(lo, hi))
     click.echo(f"corpus: {len(done)} objects in {cache / 'objects'}")
 
 
@@ -134,6 +142,58 @@ def curve(pack: Path, fractions: str, d_steps: int, device: str, out: Path | Non
                        ("cpu" if device == "auto" else device))
     cfg = PriorConfig(d_steps=d_steps)
     rows = corpus_curve(pack, [float(f) for f in fractions.split(",")], cfg, dev, log=lambda m: click.echo(m))
+    if out is not None:
+        out.write_text(json.dumps(rows, indent=1))
+
+
+def _device(name: str):
+    import torch
+
+    return torch.device("cuda" if name == "auto" and torch.cuda.is_available() else ("cpu" if name == "auto" else name))
+
+
+@main.command("train-shape")
+@click.option("--out", type=click.Path(path_type=Path), default=None, help="default: the package's weights/S")
+@click.option("--steps", type=int, default=None, help="training steps")
+@click.option("--device", default="auto", show_default=True, help="auto | cpu | cuda")
+@click.pass_obj
+def train_shape(cache: Path, out: Path | None, steps: int | None, device: str) -> None:
+    """Train the silhouette model S on the pairs' hull channels (held-out objects measure it)."""
+    import json
+
+    from ..models.storage import save_model
+    from .train_shape import ShapeTrainConfig, load_shape_pairs, train_silhouette
+
+    cfg = ShapeTrainConfig()
+    if steps is not None:
+        cfg.steps = steps
+    data = load_shape_pairs(cache / "pairs")
+    click.echo(f"S: {len(data['target'])} pairs from {len(data['names'])} pair files, "
+               f"{int(data['holdout'].sum())} held out")
+    model, curve = train_silhouette(data, cfg, _device(device), log=click.echo)
+    out = out or WEIGHTS_S
+    save_model(out, model)
+    held = sorted({data["names"][int(i)] for i in data["object"][data["holdout"]].unique()})
+    (out / "provenance.json").write_text(json.dumps(
+        {"pairs": int((~data["holdout"]).sum()), "objects": data["names"], "holdout_objects": held,
+         "curve": curve, "command": f"python -m wgs.prior --cache CACHE train-shape --steps {cfg.steps}"}, indent=1))
+    click.echo(f"S: {curve['seconds']} s -> {out}")
+
+
+@main.command("shape-curve")
+@click.option("--fractions", default="0.25,0.5,1.0", show_default=True, help="shares of the training objects")
+@click.option("--steps", default=1500, show_default=True, help="training steps per point")
+@click.option("--device", default="auto", show_default=True, help="auto | cpu | cuda")
+@click.option("--out", type=click.Path(path_type=Path), default=None, help="write the rows as JSON here")
+@click.pass_obj
+def shape_curve_cmd(cache: Path, fractions: str, steps: int, device: str, out: Path | None) -> None:
+    """Held-out silhouette IoU of S against corpus size (same held-out objects for every point)."""
+    import json
+
+    from .train_shape import ShapeTrainConfig, load_shape_pairs, shape_curve
+
+    rows = shape_curve(load_shape_pairs(cache / "pairs"), [float(f) for f in fractions.split(",")],
+                       ShapeTrainConfig(steps=steps), _device(device), log=click.echo)
     if out is not None:
         out.write_text(json.dumps(rows, indent=1))
 

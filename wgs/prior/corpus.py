@@ -195,12 +195,17 @@ def prepare_mesh(obj: dict, src_root: Path, rng: np.random.Generator) -> tuple[M
     return mesh, notes
 
 
-def render_scene(mesh: Mesh, out: Path, rng: np.random.Generator, size: int, n_train: int, n_test: int) -> None:
-    """Blender-format scene: train views on the upper hemisphere, test (novel) views over the sphere
-    from 10 degrees below the horizon to 80 above."""
+NOVEL_ELEVATIONS = (-10.0, 80.0)  # degrees: the novel views' band (the shape corpus takes the whole sphere)
+
+
+def render_scene(mesh: Mesh, out: Path, rng: np.random.Generator, size: int, n_train: int, n_test: int,
+                 novel_elevations: tuple[float, float] = NOVEL_ELEVATIONS) -> None:
+    """Blender-format scene: train views on the upper hemisphere (5-75 degrees), test (novel) views
+    between the two `novel_elevations`."""
     f = 0.5 * size / math.tan(0.5 * FOV_X)
     K = np.array([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1.0]])
-    for split, eyes in (("train", sphere_eyes(rng, n_train, 5, 75)), ("test", sphere_eyes(rng, n_test, -10, 80))):
+    for split, eyes in (("train", sphere_eyes(rng, n_train, 5, 75)),
+                        ("test", sphere_eyes(rng, n_test, *novel_elevations))):
         frames = []
         for i, eye in enumerate(eyes):
             c2w = look_at_c2w(eye)
@@ -210,30 +215,34 @@ def render_scene(mesh: Mesh, out: Path, rng: np.random.Generator, size: int, n_t
         (out / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": FOV_X, "frames": frames}))
 
 
-def build_object(obj: dict, src_root: Path, out: Path, size: int, n_train: int, n_test: int) -> dict:
+def build_object(obj: dict, src_root: Path, out: Path, size: int, n_train: int, n_test: int,
+                 novel_elevations: tuple[float, float] = NOVEL_ELEVATIONS) -> dict:
     seed = int(hashlib.sha1(obj["name"].encode()).hexdigest(), 16) % 2**31
     rng = np.random.default_rng(seed)
     mesh, notes = prepare_mesh(obj, src_root, rng)
-    render_scene(mesh, out, rng, size, n_train, n_test)
-    record = {**obj, **notes, "faces": int(len(mesh.faces)), "size": size, "holdout": is_holdout(obj["name"])}
+    render_scene(mesh, out, rng, size, n_train, n_test, novel_elevations)
+    record = {**obj, **notes, "faces": int(len(mesh.faces)), "size": size, "holdout": is_holdout(obj["name"]),
+              "novel_elevations": list(novel_elevations)}
     (out / "object.json").write_text(json.dumps(record, indent=1))
     return record
 
 
 def render_objects(objs: list[dict], src_root: Path, cache: Path, size: int, n_train: int, n_test: int,
-                   workers: int = 1, shard: tuple[int, int] = (0, 1)) -> int:
+                   novel_elevations: tuple[float, float] = NOVEL_ELEVATIONS, workers: int = 1,
+                   shard: tuple[int, int] = (0, 1)) -> int:
     """Render each object's scene unless done (workers > 1: one-thread processes, round-robin)."""
     if workers > 1:
         from .pairs import in_processes
 
-        return sum(in_processes(render_objects, workers, objs, src_root, cache, size, n_train, n_test))
+        return sum(in_processes(render_objects, workers, objs, src_root, cache, size, n_train, n_test,
+                                novel_elevations))
     made = 0
     for i, obj in enumerate(objs):
         out = cache / "objects" / obj["name"]
         if i % shard[1] != shard[0] or (out / "object.json").is_file():
             continue
         try:
-            build_object(obj, src_root, out, size, n_train, n_test)
+            build_object(obj, src_root, out, size, n_train, n_test, novel_elevations)
             made += 1
             log(f"corpus: [{i + 1}/{len(objs)}] {obj['name']}")
         except (InputError, ValueError) as exc:
@@ -243,7 +252,7 @@ def render_objects(objs: list[dict], src_root: Path, cache: Path, size: int, n_t
 
 def build_corpus(mirror: Path, cache: Path, n_procedural: int, limit: int | None, size: int = 128,
                  n_train: int = 24, n_test: int = 24, first_procedural: int = 0, workers: int = 1,
-                 n_kitbash: int = 0) -> list[dict]:
+                 n_kitbash: int = 0, novel_elevations: tuple[float, float] = NOVEL_ELEVATIONS) -> list[dict]:
     """Extract the fetched snapshots, list objects, render each (skipping finished ones)."""
     src_root = cache / "src"
     missing_total: dict[str, list[str]] = {}
@@ -265,7 +274,7 @@ def build_corpus(mirror: Path, cache: Path, n_procedural: int, limit: int | None
                        procedural_objects(n_kitbash, first_procedural, "kitbash"), *groups.values()])
     if limit is not None:
         objs = objs[:limit]
-    render_objects(objs, src_root, cache, size, n_train, n_test, workers)
+    render_objects(objs, src_root, cache, size, n_train, n_test, novel_elevations, workers)
     done = [json.loads(p.read_text()) for o in objs if (p := cache / "objects" / o["name"] / "object.json").is_file()]
     (cache / "corpus.json").write_text(json.dumps({"objects": done, "snapshots": snapshots, "missing": missing_total},
                                                   indent=1))

@@ -3,8 +3,9 @@ views (chosen as `wgs prepare` chooses them), then G_c rendered at the object's 
 paired with the ground-truth renders there. One `pairs.npz` per object and sparsity; resumable.
 
 A pair file holds uint8 arrays: render [P, H, W, 3] and ref [P, H, W, 3] (on white, the way
-`wgs repair` sees them), render_alpha and ref_alpha [P, H, W], plus the pose distance to the
-nearest training camera [P] (float32).
+`wgs repair` sees them), render_alpha and ref_alpha [P, H, W], the strict visual hull's
+silhouette hull [P, H, W], plus its depth hull_depth [P, H, W] (float16, `shape.features`) and the
+pose distance to the nearest training camera [P] (float32).
 """
 
 from __future__ import annotations
@@ -22,6 +23,8 @@ from ..gaussians.splats import load_checkpoint
 from ..gaussians.trainer import render_frame
 from ..progress import log
 from ..scene.dataset import composite, load_prepared
+from ..shape.features import hull_channels
+from ..shape.hull import visual_hull_grid
 from ..threads import map_in_processes
 from ..workspace import Workspace
 
@@ -47,9 +50,14 @@ def object_pairs(scene_dir: Path, work: Path, views: int, coarse_overrides: dict
     splats, _ = load_checkpoint(ws.stage_dir("coarse") / CKPT, scene.norm)
     bg = torch.ones(3)
     centres = torch.stack([f.center for f in scene.train])
-    out: dict[str, list] = {"render": [], "ref": [], "render_alpha": [], "ref_alpha": [], "distance": []}
+    grid, _ = visual_hull_grid(scene.train, resolution=96, tolerate=0)
+    out: dict[str, list] = {"render": [], "ref": [], "render_alpha": [], "ref_alpha": [], "distance": [],
+                            "hull": [], "hull_depth": []}
     for f in scene.test:
         rgb, alpha = render_frame(splats, f, torch.device("cpu"), bg)
+        hull, hull_depth = hull_channels(grid, f)
+        out["hull"].append(to_u8(hull))
+        out["hull_depth"].append(hull_depth.numpy().astype(np.float16))
         out["render"].append(to_u8(rgb))
         out["render_alpha"].append(to_u8(alpha[..., 0]))
         out["ref"].append(to_u8(composite(f.image, f.mask, bg)))

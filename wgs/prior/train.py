@@ -12,6 +12,7 @@ import copy
 import json
 import math
 import time
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -66,20 +67,27 @@ def load_pack(path: Path) -> dict[str, torch.Tensor]:
     return out
 
 
-def corpus_curve(pack: Path, fractions: list[float], cfg: PriorConfig, device: torch.device, log=print
-                 ) -> list[dict]:
-    """Held-out gain of D against corpus size: D trained on the first fraction of the training
-    objects (a fixed random order), always measured on the same held-out objects."""
-    data = load_pack(pack)
-    train_objs = data["object"][~data["holdout"]].unique()
-    order = train_objs[torch.randperm(len(train_objs), generator=torch.Generator().manual_seed(cfg.seed))]
-    rows = []
+def growing_subsets(objects: torch.Tensor, holdout: torch.Tensor, fractions: list[float], seed: int
+                    ) -> Iterator[tuple[dict, torch.Tensor]]:
+    """Corpus-size curves: for each fraction, the first fraction of the training objects in a
+    fixed random order plus every held-out pair. objects / holdout [N] per pair; yields ({fraction,
+    objects, pairs}, the pairs to use [N] bool)."""
+    train_objs = objects[~holdout].unique()
+    order = train_objs[torch.randperm(len(train_objs), generator=torch.Generator().manual_seed(seed))]
     for frac in fractions:
         keep = order[: max(1, round(frac * len(order)))]
-        use = data["holdout"] | torch.isin(data["object"], keep)
+        use = holdout | torch.isin(objects, keep)
+        yield {"fraction": frac, "objects": int(len(keep)), "pairs": int((use & ~holdout).sum())}, use
+
+
+def corpus_curve(pack: Path, fractions: list[float], cfg: PriorConfig, device: torch.device, log=print
+                 ) -> list[dict]:
+    """Held-out gain of D against corpus size (`growing_subsets`)."""
+    data = load_pack(pack)
+    rows = []
+    for row, use in growing_subsets(data["object"], data["holdout"], fractions, cfg.seed):
         _, curve = train_d(cfg, data["render"][use], data["ref"][use], data["holdout"][use], device, log)
-        rows.append({"fraction": frac, "objects": int(len(keep)), "pairs": int((use & ~data["holdout"]).sum()),
-                     "identity_psnr": curve["val_identity_psnr"], "repaired_psnr": curve["val_psnr"][-1],
+        rows.append({**row, "identity_psnr": curve["val_identity_psnr"], "repaired_psnr": curve["val_psnr"][-1],
                      "gain_db": curve["val_psnr"][-1] - curve["val_identity_psnr"]})
         log(f"curve: {rows[-1]}")
     return rows

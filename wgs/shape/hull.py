@@ -9,13 +9,16 @@ real mask pixel covered.
 
 from __future__ import annotations
 
+import io
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from ..errors import InputError
+from ..io import atomic_write_bytes
 from ..scene.camera import Camera
 
 EMPTY_HULL = ("the visual hull of the training masks is empty: the training views share no object region. "
@@ -75,6 +78,21 @@ class HullGrid:
 
     def with_occupancy(self, occ: torch.Tensor) -> HullGrid:
         return HullGrid(self.lo, self.hi, occ.reshape(self.occ.shape))
+
+
+def save_grid(path, grid: HullGrid) -> None:
+    """The grid as an .npz: lo, hi and the occupancy bit-packed (written atomically)."""
+    buf = io.BytesIO()
+    np.savez_compressed(buf, lo=grid.lo.numpy(), hi=grid.hi.numpy(), shape=np.array(grid.occ.shape),
+                        bits=np.packbits(grid.occ.numpy().reshape(-1)))
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def load_grid(path) -> HullGrid:
+    with np.load(path) as z:
+        shape = tuple(int(v) for v in z["shape"])
+        occ = np.unpackbits(z["bits"])[: int(np.prod(shape))].astype(bool).reshape(shape)
+        return HullGrid(torch.from_numpy(z["lo"]), torch.from_numpy(z["hi"]), torch.from_numpy(occ))
 
 
 def grid_centres(lo: torch.Tensor, hi: torch.Tensor, resolution: int) -> torch.Tensor:

@@ -1,22 +1,33 @@
 """Stage 4: pseudo references. Render G_c at novel viewpoints (from the training cameras only),
 Haar-DWT, D repairs the LL subband, U repairs the HF subbands, inverse DWT. With an RGB-domain D
 (`wgs finetune --domain rgb`) D repairs the RGB render and U is not used. When the coarse stage
-trained an ensemble, every member's render is repaired and the repairs are averaged."""
+trained an ensemble, every member's render is repaired and the repairs are averaged. Where the
+scene has masks, the silhouette model S predicts the object's outline at each pseudo view, and
+the visual hull is carved with those outlines (`shape.carve`): the fine stage starts from it."""
 
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
 
-from ..config import VIEWS, RepairConfig
+from ..config import CARVED_HULL, SILHOUETTES, VIEWS, RepairConfig
+from ..gaussians.trainer import render_frame
 from ..io import atomic_write_json
 from ..io.exr import write_subbands
 from ..io.images import write_png
 from ..models.repair import load_repairer
+from ..models.storage import load_model
+from ..prior import WEIGHTS_S
+from ..progress import log
 from ..scene.dataset import load_prepared
 from ..scene.orbit import novel_views, sphere_views
+from ..shape.carve import carve
+from ..shape.features import hull_channels, predict_object, silhouette_inputs
+from ..shape.hull import HullGrid, save_grid, visual_hull_grid
 from ..workspace import StageRun, Workspace
 from .shared import background_for, coarse_members, ensemble_repair
 
@@ -24,6 +35,35 @@ from .shared import background_for, coarse_members, ensemble_repair
 def contact_sheet(rows: list[tuple[torch.Tensor, torch.Tensor]]) -> np.ndarray:
     """One row per view: render | repaired."""
     return np.concatenate([np.concatenate([a.numpy(), b.numpy()], axis=1) for a, b in rows], axis=0)
+
+
+@dataclass
+class SilhouettePredictor:
+    """S with the strict visual hull of the training masks: the object probability at any camera."""
+
+    model: torch.nn.Module
+    grid: HullGrid
+    device: torch.device
+
+    def predict(self, camera, render: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+        """[H, W] object probability from G_c's render [H, W, 3] and opacity [H, W] at `camera`."""
+        return predict_object(self.model, silhouette_inputs(render, alpha, *hull_channels(self.grid, camera)))
+
+
+def silhouette_predictor(scene, cfg: RepairConfig, device: torch.device) -> SilhouettePredictor | None:
+    """S and the hull it carves, or None (with one line) where the scene does not need or allow carving."""
+    if not cfg.carve:
+        return None
+    if not scene.has_masks:
+        log("repair: no masks -> no visual hull, no carving")
+        return None
+    folder = WEIGHTS_S if cfg.silhouette_model == "builtin" else Path(cfg.silhouette_model)
+    if cfg.silhouette_model == "builtin" and not (folder / "model.safetensors").is_file():
+        log("repair: no shipped silhouette model S -> no carving")
+        return None
+    model, _ = load_model(folder, device)
+    grid, _ = visual_hull_grid(scene.train, cfg.hull_resolution, tolerate=0)
+    return SilhouettePredictor(model, grid, device)
 
 
 def run_repair(ws: Workspace, cfg: RepairConfig, device: torch.device, seed: int, force: bool = False) -> bool:
@@ -43,18 +83,31 @@ def repair_views(run: StageRun, ws: Workspace, cfg: RepairConfig, device: torch.
         per_pair = max(1, round(cfg.views_per_train * len(scene.train) / n_pairs))
         views = novel_views(scene.train, per_pair, cfg.arc_min, cfg.arc_max, seed)
     bg = background_for(scene)
-    listing, rows = [], []
+    shape = silhouette_predictor(scene, cfg, device)
+    listing, rows, probs = [], [], []
     d_max = max(d for _, d in views)
     for frame, dist in views:
-        render, fixed, bands_in, bands_out = ensemble_repair(members, frame, bg, repairer, device)
+        first, alpha = render_frame(members[0], frame, device, bg)
+        render, fixed, bands_in, bands_out = ensemble_repair(members, frame, bg, repairer, device, first_render=first)
         stem = frame.name.rsplit(".", 1)[0]
+        extra = {}
+        if shape is not None:
+            probs.append(shape.predict(frame, first, alpha[..., 0]))
+            write_png(run.path(SILHOUETTES, frame.name), probs[-1][..., None].expand(-1, -1, 3).numpy())
+            extra["silhouette"] = f"{SILHOUETTES}/{frame.name}"
         write_subbands(run.path("corrupted", f"{stem}.exr"), bands_in)
         write_subbands(run.path("repaired", f"{stem}.exr"), bands_out)
         write_subbands(run.path("pseudo", f"{stem}.exr"), {"RGB": fixed.numpy()}, half=False)
         write_png(run.path("pseudo", frame.name), fixed.numpy())
         rows.append((render, fixed))
         listing.append({"name": frame.name, **frame.to_json(), "distance": dist,
-                        "weight": min(1.0, 2.0 * dist / d_max) if d_max > 0 else 1.0})
+                        "weight": min(1.0, 2.0 * dist / d_max) if d_max > 0 else 1.0, **extra})
+    if shape is not None:
+        carved, counts = carve(shape.grid, [f for f, _ in views], probs, scene.train, cfg)
+        save_grid(run.path(CARVED_HULL), carved)
+        run.record["carving"] = counts
+        log(f"repair: S carved {counts['carved'] - counts['restored']} of the hull's {counts['voxels']} voxels "
+            f"({counts['restored']} kept for the real masks)")
     write_png(run.path("contact_sheet.png"), contact_sheet(rows))
     atomic_write_json(run.path(VIEWS), {"domain": domain, "used_u": U is not None, "views": listing})
     seconds = time.perf_counter() - t0

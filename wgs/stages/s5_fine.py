@@ -6,15 +6,17 @@ import dataclasses
 
 import torch
 
-from ..config import CKPT, PLY, VIEWS, FineConfig
+from ..config import CARVED_HULL, CKPT, PLY, VIEWS, FineConfig
 from ..curves import CURVE, test_probe, write_curve
 from ..gaussians.splats import VIEWER_SH_DEGREE, Splats, export_ply, load_checkpoint, save_checkpoint, to_world
 from ..gaussians.trainer import PseudoViews, train_gaussians
 from ..io import read_json
 from ..io.exr import read_subbands
+from ..io.images import read_image
 from ..progress import log
 from ..scene.camera import Camera
 from ..scene.dataset import Frame, PreparedScene, load_prepared
+from ..shape.hull import load_grid
 from ..workspace import StageRun, Workspace
 from .shared import background_for, ensemble_repair, initial_splats, workspace_repairer
 
@@ -32,13 +34,17 @@ def pseudo_schedule(cfg: FineConfig):
 
 
 def load_pseudo_views(ws: Workspace) -> tuple[list[Frame], list[float]]:
+    """The repair stage's pseudo frames (image, and S's object probability as the mask where it
+    ran) and their weights."""
     d = ws.stage_dir("repair")
     listing = read_json(d / VIEWS)
     frames, weights = [], []
     for v in listing["views"]:
         img = read_subbands(d / "pseudo" / f"{v['name'].rsplit('.', 1)[0]}.exr")["RGB"]
         cam = Camera.from_json(v)
-        frames.append(Frame(cam.K, cam.viewmat, cam.width, cam.height, name=v["name"], image=torch.from_numpy(img)))
+        mask = torch.from_numpy(read_image(d / v["silhouette"])[..., 0].copy()) if "silhouette" in v else None
+        frames.append(Frame(cam.K, cam.viewmat, cam.width, cam.height, name=v["name"], image=torch.from_numpy(img),
+                            mask=mask))
         weights.append(float(v["weight"]))
     return frames, weights
 
@@ -78,6 +84,9 @@ def starting_splats(ws: Workspace, scene: PreparedScene, cfg: FineConfig, seed: 
     """The Gaussians the fine stage trains: the visual-hull init or G_c, and which it is."""
     start = start_of(cfg, scene.has_masks)
     if start == "hull":
+        carved = ws.stage_dir("repair") / CARVED_HULL
+        if carved.is_file():
+            return initial_splats(scene, cfg, seed, load_grid(carved)), "carved hull"
         return initial_splats(scene, cfg, seed), start
     return load_checkpoint(ws.stage_dir("coarse") / CKPT, scene.norm)[0], start
 
@@ -115,5 +124,5 @@ def train_fine(run: StageRun, ws: Workspace, cfg: FineConfig, device: torch.devi
     run.record.update({"num_gaussians": n, "iterations": res.iterations, "num_pseudo": len(frames),
                        "rounds": max(1, cfg.rounds), "start": start, "lpips_term": lpips_term,
                        "train_seconds": round(res.seconds, 2), "final_loss": res.losses[-1], "seed": seed})
-    origin = "the visual hull" if start == "hull" else "G_c"
+    origin = {"hull": "the visual hull", "carved hull": "the carved visual hull"}.get(start, "G_c")
     return f"fine: {n} Gaussians trained from {origin}, {len(frames)} pseudo views, {res.seconds:.1f} s"

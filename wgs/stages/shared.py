@@ -1,5 +1,5 @@
-"""What the stages share: their output file names, the background renders are composited on,
-the initial Gaussians, the subbands written beside renders. Stages import this module and the
+"""What the stages share: the background renders are composited on, the initial Gaussians, the
+subbands of a render, the ensemble's members and their repair. Stages import this module and the
 layers below it, never each other."""
 
 from __future__ import annotations
@@ -8,19 +8,23 @@ import torch
 
 from ..config import CKPT, MEMBERS, RepairConfig, TrainConfig
 from ..errors import InputError
-from ..gaussians.init import knn_mean_distance, random_init, visual_hull
+from ..gaussians.init import hull_points, knn_mean_distance, random_init, visual_hull
 from ..gaussians.splats import Splats, create_splats, load_checkpoint
 from ..gaussians.trainer import render_frame
 from ..models.repair import Repairer, load_repairer, repair_image, symmetrized
 from ..progress import log
 from ..scene.dataset import Frame, PreparedScene
+from ..shape.hull import HullGrid, mask_votes
 from ..wavelet.haar import dwt2
 
 
-def initial_splats(scene: PreparedScene, cfg: TrainConfig, seed: int) -> Splats:
-    """Visual hull of the masks when the scene has them, else random points in the object region."""
+def initial_splats(scene: PreparedScene, cfg: TrainConfig, seed: int, hull: HullGrid | None = None) -> Splats:
+    """Visual hull of the masks when the scene has them (or the given, carved, hull), else random
+    points in the object region."""
     gen = torch.Generator().manual_seed(seed)
-    if scene.has_masks:
+    if hull is not None:
+        pts, cols = hull_points(hull, mask_votes(scene.train, hull.centres())[1], cfg.init_points, gen)
+    elif scene.has_masks:
         try:
             pts, cols = visual_hull(scene.train, cfg.hull_resolution, 1.0, cfg.init_points, generator=gen)
         except InputError as exc:  # name the scene the user gave, whose masks and poses are at fault

@@ -1,4 +1,4 @@
-"""Orthonormal Haar wavelets and subband EXR files."""
+"""Orthonormal Haar wavelets (the subbands' EXR files are written by `wgs.io.exr`)."""
 
 from .haar import dwt2, idwt2
 

@@ -1,0 +1,150 @@
+"""Training of the silhouette model S on corpus pairs: at a novel pose, the coarse model's render
+and opacity and the 4-view hull's silhouette and depth in, the exactly rendered true alpha out.
+
+The loss is a binary cross-entropy that costs a missed object pixel `object_weight` times an excess
+pixel: carving with S must rather leave the hull fat than cut the object. Whole objects are held
+out (`corpus.is_holdout`) and measure S against the hull and the coarse model's own opacity.
+"""
+
+from __future__ import annotations
+
+import copy
+import statistics
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from ..errors import InputError
+from ..models.optim import clipped_step
+from ..models.silhouette_net import SilhouetteNet, SilhouetteNetConfig
+from ..shape.features import CHANNELS
+from ..shape.scores import silhouette_scores
+from .train import growing_subsets
+
+
+@dataclass
+class ShapeTrainConfig:
+    channels: int = 16
+    steps: int = 3000
+    batch: int = 16
+    lr: float = 2e-3
+    warmup: int = 100  # linear learning-rate warm-up steps, then cosine decay to 0
+    object_weight: float = 2.0  # a missed object pixel costs this many excess pixels
+    ema_decay: float = 0.995
+    eval_every: int = 250
+    seed: int = 0
+
+
+def load_shape_pairs(pairs_dir: Path) -> dict[str, torch.Tensor]:
+    """The pair files that carry the hull channels: inputs [N, 6, H, W], target [N, H, W] in {0, 1},
+    holdout [N] bool, object [N] (file index), and names (file stems)."""
+    from ..shape.features import silhouette_inputs
+
+    xs, ys, hold, obj, names = [], [], [], [], []
+    files = sorted(p for p in pairs_dir.glob("*.npz"))
+    for f in files:
+        with np.load(f) as z:
+            if "hull" not in z.files:
+                continue
+            rgb = torch.from_numpy(z["render"]).float() / 255
+            alpha = torch.from_numpy(z["render_alpha"]).float() / 255
+            hull = torch.from_numpy(z["hull"]).float() / 255
+            depth = torch.from_numpy(z["hull_depth"].astype(np.float32))
+            xs += [silhouette_inputs(rgb[i], alpha[i], hull[i], depth[i]) for i in range(len(rgb))]
+            ys.append(torch.from_numpy(z["ref_alpha"]).float() / 255 > 0.5)
+            hold.append(torch.full((len(rgb),), bool(z["holdout"])))
+            obj.append(torch.full((len(rgb),), len(names)))
+            names.append(f.stem)
+    if not xs:
+        raise InputError("no pair files with hull channels (rebuild them with `python -m wgs.prior pairs`)", pairs_dir)
+    return {"inputs": torch.stack(xs), "target": torch.cat(ys).float(), "holdout": torch.cat(hold),
+            "object": torch.cat(obj), "names": names}
+
+
+def augment(x: torch.Tensor, y: torch.Tensor, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """The same random flip / transpose of inputs [B, 6, H, W] and targets [B, H, W] (a camera's roll
+    and handedness say nothing of shape), and a colour-channel permutation of the render."""
+    k = int(torch.randint(0, 8, (1,), generator=gen))
+    if k & 1:
+        x, y = x.flip(-1), y.flip(-1)
+    if k & 2:
+        x, y = x.flip(-2), y.flip(-2)
+    if k & 4:
+        x, y = x.transpose(-1, -2), y.transpose(-1, -2)
+    perm = torch.randperm(3, generator=gen)
+    return torch.cat([x[:, perm], x[:, 3:]], 1), y
+
+
+def weighted_bce(logits: torch.Tensor, target: torch.Tensor, object_weight: float) -> torch.Tensor:
+    """logits [B, 1, H, W], target [B, H, W]."""
+    w = 1.0 + (object_weight - 1.0) * target
+    return F.binary_cross_entropy_with_logits(logits[:, 0], target, weight=w)
+
+
+@torch.no_grad()
+def held_out_scores(model: torch.nn.Module, data: dict[str, torch.Tensor], device: torch.device) -> dict[str, float]:
+    """Mean silhouette IoU / excess / missed on the held-out pairs of S (p > 0.5), of the hull and of
+    the coarse model's opacity (> 0.5)."""
+    idx = data["holdout"].nonzero()[:, 0]
+    rows: dict[str, list[dict[str, float]]] = {"S": [], "hull": [], "coarse": []}
+    for chunk in idx.split(32):
+        x = data["inputs"][chunk]
+        prob = torch.sigmoid(model(x.to(device))).cpu()[:, 0]
+        for j in range(len(chunk)):
+            true = data["target"][chunk[j]] > 0.5
+            rows["S"].append(silhouette_scores(prob[j] > 0.5, true))
+            rows["hull"].append(silhouette_scores(x[j, 4] > 0.5, true))
+            rows["coarse"].append(silhouette_scores(x[j, 3] > 0.5, true))
+    return {f"{who}_{k}": statistics.fmean(r[k] for r in rs) for who, rs in rows.items() for k in ("iou", "excess",
+                                                                                                   "missed")}
+
+
+def train_silhouette(data: dict[str, torch.Tensor], cfg: ShapeTrainConfig, device: torch.device, log=print,
+                     init: torch.nn.Module | None = None) -> tuple[SilhouetteNet, dict]:
+    """Train S on the non-held-out pairs; returns the EMA model and its curve (held-out scores)."""
+    torch.manual_seed(cfg.seed)
+    gen = torch.Generator().manual_seed(cfg.seed)
+    model = (copy.deepcopy(init) if init is not None
+             else SilhouetteNet(SilhouetteNetConfig(CHANNELS, cfg.channels))).to(device).train()
+    ema = copy.deepcopy(model).eval()
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=1e-4)
+    train_idx = (~data["holdout"]).nonzero()[:, 0]
+    if train_idx.numel() == 0:
+        raise InputError("every pair is held out: nothing to train S on")
+    curve: dict = {"step": [], "loss": [], "held_out": []}
+    t0, losses = time.perf_counter(), []
+    for step in range(1, cfg.steps + 1):
+        lr = cfg.lr * min(1.0, step / max(cfg.warmup, 1)) * 0.5 * (1 + np.cos(np.pi * step / cfg.steps))
+        for g in opt.param_groups:
+            g["lr"] = lr
+        pick = train_idx[torch.randint(0, train_idx.numel(), (cfg.batch,), generator=gen)]
+        x, y = augment(data["inputs"][pick], data["target"][pick], gen)
+        loss = weighted_bce(model(x.to(device)), y.to(device), cfg.object_weight)
+        losses.append(clipped_step(opt, model, loss, "S", step, ema, cfg.ema_decay))
+        if step % cfg.eval_every == 0 or step == cfg.steps:
+            scores = held_out_scores(ema, data, device) if data["holdout"].any() else {}
+            curve["step"].append(step)
+            curve["loss"].append(statistics.fmean(losses))
+            curve["held_out"].append(scores)
+            losses = []
+            log(f"S: step {step}/{cfg.steps} loss {curve['loss'][-1]:.4f} held-out IoU "
+                f"S {scores.get('S_iou', float('nan')):.3f} hull {scores.get('hull_iou', float('nan')):.3f} "
+                f"coarse {scores.get('coarse_iou', float('nan')):.3f} ({time.perf_counter() - t0:.0f} s)")
+    curve["seconds"] = round(time.perf_counter() - t0, 1)
+    curve["config"] = asdict(cfg)
+    return ema.cpu(), curve
+
+
+def shape_curve(data: dict[str, torch.Tensor], fractions: list[float], cfg: ShapeTrainConfig, device: torch.device,
+                log=print) -> list[dict]:
+    """Held-out IoU of S against corpus size (`train.growing_subsets`)."""
+    rows = []
+    for row, use in growing_subsets(data["object"], data["holdout"], fractions, cfg.seed):
+        _, curve = train_silhouette({k: v[use] for k, v in data.items() if k != "names"}, cfg, device, log)
+        rows.append({**row, **curve["held_out"][-1]})
+        log(f"shape curve: {rows[-1]}")
+    return rows
