@@ -160,7 +160,7 @@ def test_second_run_recomputes_nothing_and_fine_option_reruns_fine_and_eval(tiny
     assert ws.manifest("fine")["iterations"] == 12 and ws.manifest("fine")["rounds"] == 1
     # a second round: the refined model's renders repaired again, trained on again
     # from G_c instead of the visual hull (a masked scene's default)
-    assert ws.manifest("fine")["start"] == "hull"
+    assert ws.manifest("fine")["start"] == "carved hull"  # the shipped S carved the hull in the repair stage
     res = CliRunner().invoke(cli, ["-q", "--config", str(cfg2), "-w", str(ws.root), "fine", "--rounds", "2",
                                    "--start", "coarse"], catch_exceptions=False)
     assert res.exit_code == 0, res.output

@@ -177,7 +177,7 @@ def test_corpus_pairs_train_chain(tmp_path):
     from wgs.prior.train_shape import ShapeTrainConfig, load_shape_pairs, train_silhouette
 
     data = load_shape_pairs(pairs)
-    assert data["inputs"].shape == (8, 6, 32, 32) and int(data["holdout"].sum()) == 4
+    assert data["inputs"].shape == (8, 6, 64, 64) and int(data["holdout"].sum()) == 4  # at S's working size
     S, curve = train_silhouette(data, ShapeTrainConfig(channels=8, steps=3, batch=2, eval_every=2), torch.device("cpu"),
                                 log=lambda m: None)
     assert isinstance(S, SilhouetteNet) and curve["step"] == [2, 3]
@@ -228,6 +228,19 @@ def test_shipped_prior_loads_with_provenance():
     assert prov["pairs"] > 0 and prov["sources"]
     assert all(s["licence"] for s in prov["sources"])
     assert not any("lego" in s["name"] or "nerf" in s["name"].lower() for s in prov["sources"])
+
+
+def test_shipped_silhouette_model_loads_with_provenance():
+    from wgs.models.silhouette_net import SilhouetteNet
+    from wgs.models.storage import load_model
+    from wgs.prior import WEIGHTS_S
+
+    model, _ = load_model(WEIGHTS_S)
+    assert isinstance(model, SilhouetteNet)
+    prov = json.loads((WEIGHTS_S / "provenance.json").read_text())
+    held = prov["curve"]["held_out"][-1]
+    assert prov["holdout_objects"] and held["S_iou"] > held["hull_iou"]  # S beats the hull on unseen objects
+    assert not any("lego" in n or "nerf" in n.lower() for n in prov["objects"])
 
 
 def test_kitbash_shape_is_many_flat_coloured_parts():

@@ -259,9 +259,59 @@ def bench_sfm(scene: str, root: str, matcher: str = "auto", max_image_size: int 
             "machine": {"platform": platform.platform(), "cpus": os.cpu_count()}}
 
 
+SHAPE_OBJECTS = ("common-3d-test-models-cow", "common-3d-test-models-teapot", "common-3d-test-models-rocker-arm",
+                 "common-3d-test-models-homer")
+
+
+def bench_shape(mirror: str, root: str, objects: tuple[str, ...], preset: str, views: int, size: int = 200,
+                n_test: int = 32) -> dict:
+    """Carving on against off on meshes the silhouette model never saw: each rendered by the corpus
+    code (24 photos on the upper hemisphere, `n_test` test views over the whole sphere), `wgs all
+    --no-carve`, then a copy of that workspace with carving (repair, fine and eval rerun). G_f's
+    PSNR and silhouette IoU per object, the hull's leave-one-out estimate, and the mean gains."""
+    from .prior.corpus import build_object, extract, list_objects, snapshot_dir
+
+    base = Path(root)
+    src = base / "src"
+    for repo in sorted({"alecjacobson/common-3d-test-models", "odedstein/meshes"}):
+        git_dir = snapshot_dir(Path(mirror), repo)
+        if git_dir is not None and not (src / repo.replace("/", "+")).is_dir():
+            extract(git_dir, src / repo.replace("/", "+"))
+    listed = {o["name"]: o for o in list_objects(src)}
+    rows = []
+    for name in objects:
+        if name not in listed:
+            print(f"shape: {name} not in the fetched snapshots under {mirror}: skipped")
+            continue
+        scene = base / "scenes" / name
+        if not (scene / "object.json").is_file():
+            build_object(listed[name], src, scene, size, 24, n_test, novel_elevations=(-85.0, 85.0))
+        row: dict = {"object": name}
+        for carve in ("--no-carve", "--carve"):
+            ws = base / name / carve.strip("-")
+            if carve == "--carve" and not ws.exists():  # the stages before repair are shared
+                shutil.copytree(base / name / "no-carve", ws)
+            t = wgs_cli("-w", str(ws), "all", str(scene), "--views", str(views), "--preset", preset, carve)
+            res = json.loads((ws / STAGE_DIRS["eval"] / RESULTS).read_text())
+            row[carve.strip("-")] = {"psnr": res["psnr"], "silhouette_iou": res.get("silhouette_iou"),
+                                     "coarse_psnr": res["coarse"]["psnr"], "wall_s": round(t, 1),
+                                     "carving": (json.loads((ws / STAGE_DIRS["repair"] / "manifest.json")
+                                                            .read_text()).get("carving"))}
+            row["leave_one_out_iou"] = (res.get("shape") or {}).get("leave_one_out", {}).get("iou")
+            row["hull_test_iou"] = (res.get("shape") or {}).get("hull_test", {}).get("iou")
+        row["gain_db"] = row["carve"]["psnr"] - row["no-carve"]["psnr"]
+        rows.append(row)
+        print(f"shape: {name}: G_f {row['no-carve']['psnr']:.2f} -> {row['carve']['psnr']:.2f} dB, silhouette IoU "
+              f"{row['no-carve']['silhouette_iou']:.3f} -> {row['carve']['silhouette_iou']:.3f}")
+    gains = [r["gain_db"] for r in rows]
+    return {"benchmark": "shape", "preset": preset, "views": views, "size": size, "objects": rows,
+            "mean_gain_db": sum(gains) / len(gains) if gains else None,
+            "machine": {"platform": platform.platform(), "threads": torch.get_num_threads()}}
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(prog="python -m wgs.bench")
-    ap.add_argument("which", choices=["rasterizer", "pipeline", "batch", "contention", "knn", "sfm"])
+    ap.add_argument("which", choices=["rasterizer", "pipeline", "batch", "contention", "knn", "sfm", "shape"])
     ap.add_argument("--json", action="store_true", help="print JSON instead of a table")
     ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--ref-repeats", type=int, default=3)
@@ -274,7 +324,17 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--iterations", type=int, default=300, help="contention: coarse iterations per run")
     ap.add_argument("--variants", default=",".join(CONTENTION_VARIANTS), help="contention: thread settings")
     ap.add_argument("--matcher", default="auto", help="sfm: auto, exhaustive or sequential")
+    ap.add_argument("--mirror", default=str(Path(__file__).resolve().parents[2] / ".mirror"),
+                    help="shape: folder of fetched snapshots (owner+name/repo)")
+    ap.add_argument("--objects", default=",".join(SHAPE_OBJECTS), help="shape: held-out meshes by corpus name")
     a = ap.parse_args(argv)
+    if a.which == "shape":
+        res = bench_shape(a.mirror, a.root, tuple(a.objects.split(",")), a.preset or "fast", a.views)
+        Path(a.root).mkdir(exist_ok=True)
+        (Path(a.root) / "shape.json").write_text(json.dumps(res, indent=2))
+        json.dump(res, sys.stdout, indent=2)
+        print()
+        return
     if a.which == "sfm":
         if not Path(a.scene).is_dir():
             print(f"scene {a.scene} not found: skipped")

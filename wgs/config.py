@@ -157,6 +157,7 @@ class RepairConfig(CarveParams):
     carve: bool = True
     silhouette_model: str = "builtin"  # builtin: wgs/prior/weights/S; or a folder holding S
     hull_resolution: int = TrainConfig.hull_resolution  # voxels along the carved hull's box
+    carve_views: int = 32  # S also predicts at this many views over the whole sphere, for carving only
 
 
 @dataclass
@@ -238,7 +239,7 @@ PLY = "point_cloud.ply"  # coarse, fine: the model in the INRIA layout, world co
 MEMBERS = "members"  # coarse: the ensemble's other models, members/ckpt_<i>.pt (i >= 1)
 INDEX = "index.json"  # mask_data: the corrupted / clean pairs
 VIEWS = "views.json"  # repair: the pseudo views' cameras and weights (and S's silhouette files)
-SILHOUETTES = "silhouettes"  # repair: S's object probability at each pseudo view, PNG
+SILHOUETTES = "silhouettes"  # repair: per pseudo view, where the object may be (black: S is sure of background), PNG
 CARVED_HULL = "carved_hull.npz"  # repair: the visual hull carved with S's silhouettes (shape.hull.save_grid)
 RESULTS = "results.json"  # eval: metrics, times, the plain-3DGS baseline
 

@@ -185,7 +185,7 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
                 loss = loss + cfg.mask_weight * (a_err.mean() if weight is None else
                                                  (a_err * weight).sum() / weight.sum().clamp_min(1.0))
             if pseudo is not None and it % pseudo.every == 0 and pseudo.schedule(sched) > 0:
-                loss = loss + pseudo_loss(params, pseudo, it, sched, deg, device, gen, cfg)
+                loss = loss + pseudo_loss(params, pseudo, it, sched, deg, device, cfg)
             loss.backward()
             if not torch.isfinite(loss):
                 raise WgsError(f"{desc}: loss became non-finite at iteration {it}; nothing was saved")
@@ -229,17 +229,16 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
 
 
 def pseudo_loss(params: Splats, pseudo: PseudoViews, it: int, sched: int, deg: int, device: torch.device,
-                gen: torch.Generator, cfg: TrainConfig) -> torch.Tensor:
-    """L1 + L2 (+ LPIPS) against one pseudo reference. Where the frame has a mask (the silhouette
-    model's object probability), the reference is taken as the object's colour inside it and
-    composited on a background (random, as on the real views), and opacity learns the mask: pseudo
-    views then carve too."""
+                cfg: TrainConfig) -> torch.Tensor:
+    """L1 + L2 (+ LPIPS) against one pseudo reference. Where the frame has a mask (0 where the
+    silhouette model is sure of background, 1 where the object may be), the reference shows the
+    background outside it and opacity is pushed to 0 there: pseudo views then carve too. Inside it
+    opacity is left free, and the background stays the reference's own (a random one would turn
+    the reference's background pixels near the object into white halos)."""
     j = (it // pseudo.every) % len(pseudo.frames)
     f = pseudo.frames[j]
     bg, target = pseudo.background.to(device), f.image.to(device)
     if f.mask is not None:
-        if cfg.random_background:
-            bg = torch.rand(3, generator=gen).to(device)
         a = f.mask.to(device)[..., None]
         target = target * a + bg * (1 - a)
     means, quats, scales, opac, sh = activate(params)
@@ -248,7 +247,7 @@ def pseudo_loss(params: Splats, pseudo: PseudoViews, it: int, sched: int, deg: i
     diff = rgb - target
     loss = diff.abs().mean() + diff.pow(2).mean()
     if f.mask is not None and cfg.mask_weight > 0:
-        loss = loss + cfg.mask_weight * (alpha[..., 0] - f.mask.to(device)).abs().mean()
+        loss = loss + cfg.mask_weight * (alpha[..., 0] * (1 - f.mask.to(device))).mean()
     if pseudo.lpips is not None and pseudo.lpips_weight > 0:
         perceptual = pseudo.lpips(rgb.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None]).mean()
         loss = loss + pseudo.lpips_weight * perceptual

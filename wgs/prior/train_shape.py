@@ -21,7 +21,7 @@ import torch.nn.functional as F
 from ..errors import InputError
 from ..models.optim import clipped_step
 from ..models.silhouette_net import SilhouetteNet, SilhouetteNetConfig
-from ..shape.features import CHANNELS
+from ..shape.features import CHANNELS, silhouette_inputs, to_work_size
 from ..shape.scores import silhouette_scores
 from .train import growing_subsets
 
@@ -29,8 +29,8 @@ from .train import growing_subsets
 @dataclass
 class ShapeTrainConfig:
     channels: int = 16
-    steps: int = 3000
-    batch: int = 16
+    steps: int = 2500
+    batch: int = 8
     lr: float = 2e-3
     warmup: int = 100  # linear learning-rate warm-up steps, then cosine decay to 0
     object_weight: float = 2.0  # a missed object pixel costs this many excess pixels
@@ -40,9 +40,9 @@ class ShapeTrainConfig:
 
 
 def load_shape_pairs(pairs_dir: Path) -> dict[str, torch.Tensor]:
-    """The pair files that carry the hull channels: inputs [N, 6, H, W], target [N, H, W] in {0, 1},
-    holdout [N] bool, object [N] (file index), and names (file stems)."""
-    from ..shape.features import silhouette_inputs
+    """The pair files that carry the hull channels, at S's working size: inputs [N, 6, h, w], target
+    [N, h, w] (the true alpha's coverage), holdout [N] bool, object [N] (file index), and names (file
+    stems)."""
 
     xs, ys, hold, obj, names = [], [], [], [], []
     files = sorted(p for p in pairs_dir.glob("*.npz"))
@@ -54,14 +54,16 @@ def load_shape_pairs(pairs_dir: Path) -> dict[str, torch.Tensor]:
             alpha = torch.from_numpy(z["render_alpha"]).float() / 255
             hull = torch.from_numpy(z["hull"]).float() / 255
             depth = torch.from_numpy(z["hull_depth"].astype(np.float32))
-            xs += [silhouette_inputs(rgb[i], alpha[i], hull[i], depth[i]) for i in range(len(rgb))]
-            ys.append(torch.from_numpy(z["ref_alpha"]).float() / 255 > 0.5)
+            x = torch.stack([silhouette_inputs(rgb[i], alpha[i], hull[i], depth[i]) for i in range(len(rgb))])
+            xs.append(to_work_size(x))
+            true = (torch.from_numpy(z["ref_alpha"]).float() / 255 > 0.5).float()
+            ys.append(to_work_size(true[:, None])[:, 0])
             hold.append(torch.full((len(rgb),), bool(z["holdout"])))
             obj.append(torch.full((len(rgb),), len(names)))
             names.append(f.stem)
     if not xs:
         raise InputError("no pair files with hull channels (rebuild them with `python -m wgs.prior pairs`)", pairs_dir)
-    return {"inputs": torch.stack(xs), "target": torch.cat(ys).float(), "holdout": torch.cat(hold),
+    return {"inputs": torch.cat(xs), "target": torch.cat(ys), "holdout": torch.cat(hold),
             "object": torch.cat(obj), "names": names}
 
 

@@ -30,6 +30,13 @@ class CarveParams:
     max_carve: float = 0.5  # at most this fraction of the hull's voxels goes in one call
 
 
+def sure_background(object_prob: torch.Tensor, params: CarveParams) -> torch.Tensor:
+    """[H, W] bool: where the object probability [H, W], grown by `dilate_px`, stays under `empty_below`."""
+    k = 2 * params.dilate_px + 1
+    grown = torch.nn.functional.max_pool2d(object_prob[None, None].float(), k, 1, params.dilate_px)[0, 0]
+    return grown < params.empty_below
+
+
 def background_votes(grid: HullGrid, views: list[Camera], object_prob: list[torch.Tensor], params: CarveParams
                      ) -> tuple[torch.Tensor, torch.Tensor]:
     """For each occupied voxel (in occ.nonzero order): how many views see it [M] and how many call
@@ -37,12 +44,10 @@ def background_votes(grid: HullGrid, views: list[Camera], object_prob: list[torc
     pts = grid.centres()[grid.occ.reshape(-1)]
     seen = torch.zeros(pts.shape[0], dtype=torch.int32)
     empty = torch.zeros(pts.shape[0], dtype=torch.int32)
-    k = 2 * params.dilate_px + 1
     for cam, prob in zip(views, object_prob, strict=True):
-        grown = torch.nn.functional.max_pool2d(prob[None, None].float(), k, 1, params.dilate_px)[0, 0]
         inside, idx = pixel_lookup(cam, pts)
         seen += inside.int()
-        empty += (inside & (grown.reshape(-1)[idx] < params.empty_below)).int()
+        empty += (inside & sure_background(prob, params).reshape(-1)[idx]).int()
     return seen, empty
 
 

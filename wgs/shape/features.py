@@ -10,7 +10,7 @@ import torch.nn.functional as F
 from ..scene.camera import Camera
 from .hull import HullGrid, silhouette
 
-WORK_SIZE = 128  # S runs with the image's longer side at this many pixels (the corpus renders' size)
+WORK_SIZE = 64  # S runs with the image's longer side at this many pixels (its training pairs' too)
 CHANNELS = 6
 
 
@@ -31,17 +31,22 @@ def silhouette_inputs(rgb: torch.Tensor, alpha: torch.Tensor, hull: torch.Tensor
     return torch.cat([rgb.permute(2, 0, 1), alpha[None], hull[None], hull_depth[None]], 0).float()
 
 
+def to_work_size(x: torch.Tensor) -> torch.Tensor:
+    """[B, C, H, W] resized (area-filtered) so that the longer side is WORK_SIZE."""
+    h, w = x.shape[-2:]
+    scale = WORK_SIZE / max(h, w)
+    if abs(scale - 1) < 1e-6:
+        return x
+    return F.interpolate(x, size=(max(1, round(h * scale)), max(1, round(w * scale))), mode="bilinear",
+                         align_corners=False, antialias=scale < 1)
+
+
 @torch.no_grad()
 def predict_object(model: torch.nn.Module, inputs: torch.Tensor) -> torch.Tensor:
     """S's object probability [H, W] for inputs [6, H, W]: run at WORK_SIZE, resized back."""
     h, w = inputs.shape[-2:]
-    scale = WORK_SIZE / max(h, w)
-    x = inputs[None]
-    if abs(scale - 1) > 1e-6:
-        x = F.interpolate(x, size=(max(1, round(h * scale)), max(1, round(w * scale))), mode="bilinear",
-                          align_corners=False, antialias=scale < 1)
     dev = next(model.parameters()).device
-    prob = torch.sigmoid(model(x.to(dev))).cpu()
-    if abs(scale - 1) > 1e-6:
+    prob = torch.sigmoid(model(to_work_size(inputs[None]).to(dev))).cpu()
+    if prob.shape[-2:] != (h, w):
         prob = F.interpolate(prob, size=(h, w), mode="bilinear", align_corners=False)
     return prob[0, 0]

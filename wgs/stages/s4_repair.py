@@ -7,6 +7,7 @@ the visual hull is carved with those outlines (`shape.carve`): the fine stage st
 
 from __future__ import annotations
 
+import hashlib
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,7 +26,7 @@ from ..prior import WEIGHTS_S
 from ..progress import log
 from ..scene.dataset import load_prepared
 from ..scene.orbit import novel_views, sphere_views
-from ..shape.carve import carve
+from ..shape.carve import carve, sure_background
 from ..shape.features import hull_channels, predict_object, silhouette_inputs
 from ..shape.hull import HullGrid, save_grid, visual_hull_grid
 from ..workspace import StageRun, Workspace
@@ -46,8 +47,25 @@ class SilhouettePredictor:
     device: torch.device
 
     def predict(self, camera, render: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
-        """[H, W] object probability from G_c's render [H, W, 3] and opacity [H, W] at `camera`."""
-        return predict_object(self.model, silhouette_inputs(render, alpha, *hull_channels(self.grid, camera)))
+        """[H, W] object probability from G_c's render [H, W, 3] and opacity [H, W, 1] at `camera`."""
+        return predict_object(self.model, silhouette_inputs(render, alpha[..., 0],
+                                                            *hull_channels(self.grid, camera)))
+
+
+def silhouette_folder(cfg: RepairConfig) -> Path | None:
+    """Where S comes from when carving is on: the shipped S (None when the package has none) or a folder."""
+    if not cfg.carve:
+        return None
+    if cfg.silhouette_model != "builtin":
+        return Path(cfg.silhouette_model)
+    return WEIGHTS_S if (WEIGHTS_S / "model.safetensors").is_file() else None
+
+
+def silhouette_fingerprint(cfg: RepairConfig) -> str | None:
+    """S's weights' hash: a new S makes the repair stage stale."""
+    folder = silhouette_folder(cfg)
+    weights = folder / "model.safetensors" if folder is not None else None
+    return hashlib.sha256(weights.read_bytes()).hexdigest()[:16] if weights is not None and weights.is_file() else None
 
 
 def silhouette_predictor(scene, cfg: RepairConfig, device: torch.device) -> SilhouettePredictor | None:
@@ -57,8 +75,8 @@ def silhouette_predictor(scene, cfg: RepairConfig, device: torch.device) -> Silh
     if not scene.has_masks:
         log("repair: no masks -> no visual hull, no carving")
         return None
-    folder = WEIGHTS_S if cfg.silhouette_model == "builtin" else Path(cfg.silhouette_model)
-    if cfg.silhouette_model == "builtin" and not (folder / "model.safetensors").is_file():
+    folder = silhouette_folder(cfg)
+    if folder is None:
         log("repair: no shipped silhouette model S -> no carving")
         return None
     model, _ = load_model(folder, device)
@@ -67,7 +85,8 @@ def silhouette_predictor(scene, cfg: RepairConfig, device: torch.device) -> Silh
 
 
 def run_repair(ws: Workspace, cfg: RepairConfig, device: torch.device, seed: int, force: bool = False) -> bool:
-    return ws.run_stage("repair", cfg, {"seed": seed}, force, lambda run: repair_views(run, ws, cfg, device, seed))
+    return ws.run_stage("repair", cfg, {"seed": seed, "silhouette_model": silhouette_fingerprint(cfg)}, force,
+                        lambda run: repair_views(run, ws, cfg, device, seed))
 
 
 def repair_views(run: StageRun, ws: Workspace, cfg: RepairConfig, device: torch.device, seed: int) -> str:
@@ -91,9 +110,10 @@ def repair_views(run: StageRun, ws: Workspace, cfg: RepairConfig, device: torch.
         render, fixed, bands_in, bands_out = ensemble_repair(members, frame, bg, repairer, device, first_render=first)
         stem = frame.name.rsplit(".", 1)[0]
         extra = {}
-        if shape is not None:
-            probs.append(shape.predict(frame, first, alpha[..., 0]))
-            write_png(run.path(SILHOUETTES, frame.name), probs[-1][..., None].expand(-1, -1, 3).numpy())
+        if shape is not None:  # where the object may be: all but what S is sure is background
+            probs.append(shape.predict(frame, first, alpha))
+            may_be = (~sure_background(probs[-1], cfg)).float()
+            write_png(run.path(SILHOUETTES, frame.name), may_be[..., None].expand(-1, -1, 3).numpy())
             extra["silhouette"] = f"{SILHOUETTES}/{frame.name}"
         write_subbands(run.path("corrupted", f"{stem}.exr"), bands_in)
         write_subbands(run.path("repaired", f"{stem}.exr"), bands_out)
@@ -102,8 +122,10 @@ def repair_views(run: StageRun, ws: Workspace, cfg: RepairConfig, device: torch.
         rows.append((render, fixed))
         listing.append({"name": frame.name, **frame.to_json(), "distance": dist,
                         "weight": min(1.0, 2.0 * dist / d_max) if d_max > 0 else 1.0, **extra})
-    if shape is not None:
-        carved, counts = carve(shape.grid, [f for f, _ in views], probs, scene.train, cfg)
+    if shape is not None:  # S also at views over the whole sphere: the band leaves the poles uncarved
+        around = [f for f, _ in sphere_views(scene.train, cfg.carve_views, 180.0, 180.0)]
+        probs += [shape.predict(f, *render_frame(members[0], f, device, bg)) for f in around]
+        carved, counts = carve(shape.grid, [f for f, _ in views] + around, probs, scene.train, cfg)
         save_grid(run.path(CARVED_HULL), carved)
         run.record["carving"] = counts
         log(f"repair: S carved {counts['carved'] - counts['restored']} of the hull's {counts['voxels']} voxels "

@@ -34,8 +34,8 @@ def pseudo_schedule(cfg: FineConfig):
 
 
 def load_pseudo_views(ws: Workspace) -> tuple[list[Frame], list[float]]:
-    """The repair stage's pseudo frames (image, and S's object probability as the mask where it
-    ran) and their weights."""
+    """The repair stage's pseudo frames (image, and where S ran the mask of where the object may
+    be) and their weights."""
     d = ws.stage_dir("repair")
     listing = read_json(d / VIEWS)
     frames, weights = [], []

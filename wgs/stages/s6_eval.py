@@ -177,7 +177,7 @@ def write_report(run: StageRun, times: list[dict[str, Any]], coarse: dict, fine:
                   "coarse = G_c, fine = G_f).", ""]
     if shape is not None:
         lines += [shape_line(coarse, fine, shape) + ".",
-                  "Silhouette: " + SILHOUETTE_DOC + ".", ""]
+                  SILHOUETTE_DOC[0].upper() + SILHOUETTE_DOC[1:] + ".", ""]
     if lpips_note:
         lines += [f"LPIPS not computed: {lpips_note}", ""]
     atomic_write_bytes(run.path("report.md"), "\n".join(lines).encode())
