@@ -11,7 +11,7 @@ export NUMBA_CACHE_DIR ?= $(CURDIR)/.numba_cache
 MIRROR ?= $(CURDIR)/../.mirror
 PRIOR_BUDGET_MIN ?= 120
 
-.PHONY: setup demo test bench ablation stress lint clean prior
+.PHONY: setup demo test bench ablation stress lint clean prior shape-prior
 
 setup: $(VENV)/.installed
 
@@ -55,6 +55,14 @@ prior: $(VENV)/.installed
 	$(BIN)/python -m wgs.prior corpus --mirror $(MIRROR) --procedural 60 --limit 150
 	$(BIN)/python -m wgs.prior pairs --budget-min $(PRIOR_BUDGET_MIN)
 	$(BIN)/python -m wgs.prior train
+
+# The silhouette model S: generated objects, novel views over the whole sphere, resumable (cache outside the repo)
+SHAPE_CACHE ?= $(HOME)/.cache/wgs-shape
+shape-prior: $(VENV)/.installed
+	$(BIN)/python -m wgs.prior --cache $(SHAPE_CACHE) corpus --mirror /none --procedural 60 --kitbash 60 \
+		--first-seed 2000 --workers 2 --novel-elevations=-85,85
+	$(BIN)/python -m wgs.prior --cache $(SHAPE_CACHE) pairs --workers 2
+	$(BIN)/python -m wgs.prior --cache $(SHAPE_CACHE) train-shape --steps 2500
 
 # Slow robustness checks: SIGKILL at points spread over every stage + rerun; long loader fuzzing.
 stress: $(VENV)/.installed

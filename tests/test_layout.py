@@ -119,3 +119,24 @@ def test_the_stages_are_listed_once():
     for p in WGS.rglob("*.py"):
         if p.name != "config.py":
             assert not folders.search(p.read_text()), f"{p.name} spells a stage folder: use STAGE_DIRS"
+
+
+def test_cli_help_states_the_config_defaults():
+    """Every "default X" in a stage command's option help is the config's default for that option."""
+    import re
+
+    from wgs.cli import cli
+    from wgs.config import REGISTRY, STAGES
+
+    stated = 0
+    for name in [s.command for s in REGISTRY] + ["all"]:
+        command = cli.commands[name]
+        classes = [STAGES[name.replace("-", "_")]] if name != "all" else list(STAGES.values())
+        for param in command.params:
+            m = re.search(r"default ([^\s;)]+)", getattr(param, "help", None) or "")
+            owners = [c for c in classes if param.name in c.__dataclass_fields__]
+            if m is None or not owners:
+                continue
+            stated += 1
+            assert m.group(1).rstrip(".") == str(getattr(owners[0], param.name)), (name, param.name)
+    assert stated >= 4  # --ensemble (coarse, all), --n-regions, --coverage, --levels

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from .config import CoarseConfig
+from .config import CoarseConfig, FinetuneConfig, MaskDataConfig
 from .errors import WgsError
 from .progress import log
 
@@ -40,8 +40,10 @@ def register(cli, stage_common, workspace_option) -> None:
     @click.option("--strategy", type=click.Choice(["orm", "offline-rm", "loo"]), default=None,
                   help="orm: online random masking (default); offline-rm: static masks; loo: leave-one-out.")
     @click.option("--iterations", type=int, default=None, help="Training iterations (per model for loo).")
-    @click.option("--n-regions", type=int, default=None, help="Mask regions per view (default 10).")
-    @click.option("--coverage", type=float, default=None, help="Hidden fraction of the object area (default 0.5).")
+    @click.option("--n-regions", type=int, default=None,
+                  help=f"Mask regions per view (default {MaskDataConfig.n_regions}).")
+    @click.option("--coverage", type=float, default=None,
+                  help=f"Hidden fraction of the object area (default {MaskDataConfig.coverage}).")
     @stage_common
     @click.pass_obj
     def mask_data(obj, strategy, iterations, n_regions, coverage, force, preset):
@@ -56,7 +58,8 @@ def register(cli, stage_common, workspace_option) -> None:
     @click.option("--domain", type=click.Choice(["wavelet", "rgb"]), default=None,
                   help="wavelet: D repairs the LL subband and U the HF ones (default); rgb: D on RGB, no U.")
     @click.option("--no-u", "no_u", is_flag=True, default=None, help="Do not train the HF U-Net.")
-    @click.option("--levels", type=int, default=None, help="Haar levels J (D at 1/2^J resolution; default 1).")
+    @click.option("--levels", type=int, default=None,
+                  help=f"Haar levels J (D at 1/2^J resolution; default {FinetuneConfig.levels}).")
     @click.option("--d-steps", type=int, default=None, help="Training steps of D.")
     @click.option("--diffusion", type=click.Choice(["embedded", "controlnet"]), default=None,
                   help="embedded: our CPU-sized denoiser (default); controlnet: SD 1.5 + ControlNet-tile + LoRA.")
