@@ -297,8 +297,9 @@ def bench_shape(mirror: str, root: str, objects: tuple[str, ...], preset: str, v
                                      "coarse_psnr": res["coarse"]["psnr"], "wall_s": round(t, 1),
                                      "carving": (json.loads((ws / STAGE_DIRS["repair"] / "manifest.json")
                                                             .read_text()).get("carving"))}
-            row["leave_one_out_iou"] = (res.get("shape") or {}).get("leave_one_out", {}).get("iou")
-            row["hull_test_iou"] = (res.get("shape") or {}).get("hull_test", {}).get("iou")
+            shape = res.get("shape") or {}
+            row["leave_one_out_iou"] = (shape.get("leave_one_out") or {}).get("iou")
+            row["hull_test_iou"] = (shape.get("hull_test") or {}).get("iou")
         row["gain_db"] = row["carve"]["psnr"] - row["no-carve"]["psnr"]
         rows.append(row)
         print(f"shape: {name}: G_f {row['no-carve']['psnr']:.2f} -> {row['carve']['psnr']:.2f} dB, silhouette IoU "
