@@ -8,6 +8,7 @@ from wgs.cli import cli
 from wgs.config import CKPT
 from wgs.gaussians.splats import load_checkpoint
 from wgs.gaussians.trainer import render_frame
+from wgs.models.denoiser_meta import DenoiserMeta
 from wgs.models.repair import Repairer
 from wgs.scene.dataset import load_prepared
 from wgs.stages import s1_coarse
@@ -38,7 +39,7 @@ def test_members_are_trained_from_other_seeds_and_averaged(blender_scene, tmp_pa
     assert not torch.equal(m1["means"][:100], g_c["means"][:100])  # another seed, another model
 
     # with an identity repair the pseudo reference is the mean of the members' renders
-    bg, f, identity = torch.ones(3), scene.train[0], Repairer(lambda x: x, None, {})
+    bg, f, identity = torch.ones(3), scene.train[0], Repairer(lambda x: x, None, DenoiserMeta())
     renders = [render_frame(m, f, torch.device("cpu"), bg)[0] for m in members]
     first, ref, bands_in, bands_out = ensemble_repair(members, f, bg, identity, torch.device("cpu"))
     torch.testing.assert_close(first, renders[0])

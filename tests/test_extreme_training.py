@@ -14,7 +14,7 @@ from wgs.gaussians.splats import create_splats
 from wgs.gaussians.trainer import train_gaussians
 from wgs.resume import Checkpointer
 from wgs.scene.dataset import Frame
-from wgs.stages.s3_finetune import train_denoiser
+from wgs.stages.s3_finetune import train_scratch_d
 
 
 def test_nan_in_training_stops_with_iteration_and_group():
@@ -51,4 +51,4 @@ def test_denoiser_training_on_nan_pairs_stops_at_step_1():
     cfg = FinetuneConfig(d_steps=5, d_channels=8, d_batch=2, d_crop=8)
     clean = torch.full((3, 3, 16, 16), float("nan"))
     with pytest.raises(WgsError, match="non-finite at step 1"):
-        train_denoiser(cfg, clean, torch.zeros_like(clean), torch.device("cpu"), torch.Generator().manual_seed(0))
+        train_scratch_d(cfg, clean, torch.zeros_like(clean), torch.device("cpu"), torch.Generator().manual_seed(0))

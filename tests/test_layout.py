@@ -64,6 +64,37 @@ def test_lower_layers_know_no_workspace():
         assert "wgs.workspace" not in graph[m], f"{m} imports wgs.workspace: take paths, use wgs.io"
 
 
+def test_every_registry_stage_runs_through_one_signature():
+    import inspect
+
+    from wgs.config import REGISTRY
+    from wgs.stages import stage_runner
+
+    for stage in REGISTRY:
+        params = list(inspect.signature(stage_runner(stage.name)).parameters)
+        assert params == ["ws", "cfg", "env", "force"], f"{stage.runner}: {params}"
+
+
+def test_orchestration_spells_no_stage_order():
+    # pipeline.py and ablation.py loop over the registry; no stage module is imported by name there
+    for rel in ("pipeline.py", "ablation.py"):
+        src = (WGS / rel).read_text()
+        assert "wgs.stages.s" not in src and ".stages.s" not in src.replace(".stages.shared", ""), rel
+
+
+def test_training_sits_between_the_networks_and_their_callers():
+    # models (networks, sampling, the repair) < training (the loop, objectives) < stages and prior
+    graph = import_graph()
+    for m, deps in graph.items():
+        if m.startswith("wgs.models"):
+            assert not {d for d in deps if d.startswith("wgs.training")}, f"{m} imports the training layer"
+        if m.startswith("wgs.training"):
+            upper = {d for d in deps if d.split(".")[1] in ("stages", "prior", "workspace", "resume", "pipeline")}
+            assert not upper, f"{m} imports {sorted(upper)}"
+    assert {"wgs.training.loop"} <= graph["wgs.stages.s3_finetune"] | graph["wgs.training.denoiser"]
+    assert "wgs.training.denoiser" in graph["wgs.prior.train"]
+
+
 def test_orchestration_and_stages_know_no_click():
     # the CLI is click only: orchestration takes wgs.context.Ctx, a plain object
     for rel in ("pipeline.py", "ablation.py", "context.py", "stages"):

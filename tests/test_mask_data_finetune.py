@@ -92,7 +92,7 @@ def test_finetune_trains_and_saves_d_and_u(coarse_ws, tmp_path):
     # --prior none: today's from-scratch denoising D (SDEdit at repair time), its own width
     invoke("-w", str(ws.root), "finetune", "--preset", "fast", "--d-steps", "10", "--prior", "none")
     cfg = load_model(d / "D")[1]
-    assert "start" not in cfg and cfg["channels"] == 16 and ws.manifest("finetune")["prior"] is None
+    assert cfg["start"] == "clean" and cfg["channels"] == 16 and ws.manifest("finetune")["prior"] is None
     # RGB-domain D for the ablation: no U
     invoke("-w", str(ws.root), "finetune", "--preset", "fast", "--d-steps", "10", "--domain", "rgb")
     assert not (d / "U").exists() and load_model(d / "D")[1]["domain"] == "rgb"

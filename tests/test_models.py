@@ -12,7 +12,7 @@ from wgs.models.ll_denoiser import LLDenoiser, LLDenoiserConfig
 from wgs.models.sampling import sdedit_repair
 from wgs.models.scheduler import DDIMScheduler
 from wgs.models.storage import load_model, save_model
-from wgs.stages.s3_finetune import train_denoiser, train_hf_unet
+from wgs.stages.s3_finetune import train_hf_unet, train_scratch_d
 from wgs.wavelet.haar import dwt2, idwt2
 
 
@@ -42,7 +42,8 @@ def test_denoiser_training_lowers_the_loss():
     clean = torch.rand(4, 3, 16, 16, generator=g) * 2 - 1
     bad = clean + 0.3 * torch.randn(4, 3, 16, 16, generator=g)
     cfg = FinetuneConfig(d_channels=8, d_steps=120, d_batch=4, d_crop=16, d_lr=2e-3, ema_decay=0.9)
-    _, curve = train_denoiser(cfg, clean, bad, torch.device("cpu"), g)
+    _, curve, meta = train_scratch_d(cfg, clean, bad, torch.device("cpu"), g)
+    assert meta.start == "clean" and meta.train_timesteps == cfg.train_timesteps
     assert curve["loss"][-1] < 0.7 * curve["loss"][0]
 
 
@@ -82,10 +83,10 @@ def test_u_early_stopping_stops_when_validation_rises():
                          u_patience=3)
     _, curve = train_hf_unet(cfg, renders, refs, torch.device("cpu"), g)
     assert curve["stopped_at"] < 2000
-    vals = [curve["identity_val"], *curve["val"]]  # the untrained U (identity) is the first candidate
+    vals = [curve["bar"], *curve["val"]]  # the better of no repair and the untrained U is the first candidate
     i_best = vals.index(min(vals))
     assert len(vals) - 1 - i_best == 3  # stopped after `patience` evaluations without improvement
-    assert curve["best_val"] == min(vals) <= curve["identity_val"]
+    assert curve["best"] == min(vals) <= curve["identity"]
     assert not curve["beats_identity"]  # the held-out view needs no HF repair: U is left out
 
 
@@ -98,4 +99,4 @@ def test_u_that_learns_a_consistent_correction_beats_identity():
     cfg = FinetuneConfig(u_channels=8, u_max_steps=300, u_batch=4, u_crop=8, u_lr=5e-3, u_eval_every=20,
                          u_patience=3)
     _, curve = train_hf_unet(cfg, renders, refs, torch.device("cpu"), g)
-    assert curve["beats_identity"] and curve["best_val"] < 0.8 * curve["identity_val"]
+    assert curve["beats_identity"] and curve["best"] < 0.8 * curve["identity"]

@@ -173,15 +173,16 @@ def test_corpus_pairs_train_chain(tmp_path):
     assert arrays["hull"].shape == (4, 32, 32) and arrays["hull_depth"].dtype == np.float16
     obj_px = arrays["ref_alpha"] > 127
     assert (arrays["hull"][obj_px] > 127).mean() > 0.95
-    from wgs.models.silhouette_net import SilhouetteNet
+    from wgs.models.silhouette_net import SilhouetteNet, SilhouetteNetConfig
     from wgs.prior.train_shape import ShapeTrainConfig, load_shape_pairs, train_silhouette
 
-    data = load_shape_pairs(pairs)
-    assert data["inputs"].shape == (8, 6, 64, 64) and int(data["holdout"].sum()) == 4  # at S's working size
-    S, curve = train_silhouette(data, ShapeTrainConfig(channels=8, steps=3, batch=2, eval_every=2), torch.device("cpu"),
+    net = SilhouetteNetConfig(channels=8, levels=2, work_size=48)
+    data = load_shape_pairs(pairs, net.work_size)
+    assert data["inputs"].shape == (8, 6, 48, 48) and int(data["holdout"].sum()) == 4  # at S's working size
+    S, curve = train_silhouette(data, ShapeTrainConfig(net=net, steps=3, batch=2, eval_every=2), torch.device("cpu"),
                                 log=lambda m: None)
-    assert isinstance(S, SilhouetteNet) and curve["step"] == [2, 3]
-    assert 0 <= curve["held_out"][-1]["S_iou"] <= 1 and curve["held_out"][-1]["hull_missed"] < 0.05
+    assert isinstance(S, SilhouetteNet) and S.config.levels == 2 and curve["step"] == [2, 3]
+    assert 0 <= curve["val"][-1]["S_iou"] <= 1 and curve["val"][-1]["hull_missed"] < 0.05
 
 
 def test_prior_finetune_keeps_the_prior_unless_beaten():
@@ -194,11 +195,11 @@ def test_prior_finetune_keeps_the_prior_unless_beaten():
     clean = torch.rand(6, 3, 16, 16, generator=g) * 2 - 1
     bad = clean + 0.3 * torch.randn(6, 3, 16, 16, generator=g)
     cfg = FinetuneConfig(prior_steps=4, prior_eval_every=2, prior_lr=0.5, d_batch=2, d_crop=8)  # a harmful lr
-    model, extra, curve = finetune_prior_d(cfg, WEIGHTS, clean[:4], bad[:4], clean[4:], bad[4:],
+    model, meta, curve = finetune_prior_d(cfg, WEIGHTS, clean[:4], bad[:4], clean[4:], bad[4:],
                                            torch.device("cpu"), g)
-    assert extra["start"] == "corrupted"
-    assert curve["best_val"] <= curve["prior_val"]
-    if curve["best_val"] == curve["prior_val"]:  # nothing beat the prior: its weights are back
+    assert meta.start == "corrupted" and meta.prior == str(WEIGHTS)
+    assert curve["best"] <= curve["bar"]
+    if curve["best"] == curve["bar"]:  # nothing beat the prior: its weights are back
         prior, _ = load_model(WEIGHTS / "D")
         for a, b in zip(model.state_dict().values(), prior.state_dict().values(), strict=True):
             torch.testing.assert_close(a, b)
@@ -238,7 +239,7 @@ def test_shipped_silhouette_model_loads_with_provenance():
     model, _ = load_model(WEIGHTS_S)
     assert isinstance(model, SilhouetteNet)
     prov = json.loads((WEIGHTS_S / "provenance.json").read_text())
-    held = prov["curve"]["held_out"][-1]
+    held = prov["curve"]["val"][-1]
     assert prov["holdout_objects"] and held["S_iou"] > held["hull_iou"]  # S beats the hull on unseen objects
     assert not any("lego" in n or "nerf" in n.lower() for n in prov["objects"])
 
@@ -272,7 +273,8 @@ def test_prior_training_continues_from_its_state_and_starts_from_a_prior(tmp_pat
     args = (data["render"], data["ref"], data["holdout"], torch.device("cpu"))
     small = dict(d_channels=8, d_batch=2, d_crop=4, eval_every=2, warmup=1)
     torch.manual_seed(0)  # the model's initial weights
-    straight, _ = train_d(PriorConfig(d_steps=4, **small), *args, log=lambda m: None)
+    straight, _, meta = train_d(PriorConfig(d_steps=4, **small), *args, log=lambda m: None)
+    assert meta.start == "corrupted" and meta.t_max == PriorConfig.t_max
     state = tmp_path / "state.pt"
     # an interrupted run: the same config, stopped after its first saved state (step 2)
     cfg = PriorConfig(d_steps=4, **small)
@@ -280,8 +282,8 @@ def test_prior_training_continues_from_its_state_and_starts_from_a_prior(tmp_pat
     torch.manual_seed(0)
     with pytest.raises(KeyboardInterrupt):
         train_d(cfg, *args, log=lambda m: saves.append(m) or (len(saves) == 1 and _interrupt()), state_path=state)
-    assert state.is_file() and torch.load(state, weights_only=False)["step"] == 2
-    resumed, curve = train_d(cfg, *args, log=lambda m: None, state_path=state)
+    assert state.is_file() and torch.load(state, weights_only=False)["loop"]["step"] == 2
+    resumed, curve, _ = train_d(cfg, *args, log=lambda m: None, state_path=state)
     assert curve["step"] == [2, 4]
     for a, b in zip(straight.state_dict().values(), resumed.state_dict().values(), strict=True):
         torch.testing.assert_close(a, b, rtol=0, atol=0)

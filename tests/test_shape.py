@@ -158,10 +158,13 @@ def test_silhouette_net_tiny_config_runs_at_any_size():
     from wgs.models.silhouette_net import SilhouetteNet, SilhouetteNetConfig
     from wgs.shape.features import predict_object
 
-    net = SilhouetteNet(SilhouetteNetConfig(channels=8))
-    assert net(torch.rand(2, 6, 37, 50)).shape == (2, 1, 37, 50)
-    prob = predict_object(net, torch.rand(6, 200, 150))  # run at the working size, resized back
-    assert prob.shape == (200, 150) and ((prob >= 0) & (prob <= 1)).all()
+    for levels in (2, 4):
+        net = SilhouetteNet(SilhouetteNetConfig(channels=8, levels=levels, work_size=40))
+        assert net(torch.rand(2, 6, 37, 50)).shape == (2, 1, 37, 50)
+        seen = []
+        net.register_forward_hook(lambda m, args, out, seen=seen: seen.append(args[0].shape[-2:]))
+        prob = predict_object(net, torch.rand(6, 200, 150))  # run at the working size, resized back
+        assert seen == [(40, 30)] and prob.shape == (200, 150) and ((prob >= 0) & (prob <= 1)).all()
 
 
 def test_hull_channels_depth_is_centred(mug_hull):

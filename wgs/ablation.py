@@ -8,6 +8,7 @@ A row's time is the sum of the wall times of the stages its method needs, shared
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import shutil
 import statistics
@@ -15,10 +16,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .config import METHOD, RESULTS, stages_through
+from .config import METHOD, REGISTRY, RESULTS, stages_through
 from .errors import InputError
 from .io import atomic_write_bytes, atomic_write_json, read_json
 from .progress import log
+from .stages.shared import plain_3dgs_config
 from .workspace import STAGE_DIRS, Workspace
 
 
@@ -32,6 +34,12 @@ class Row:
     prior: str = "none"  # the paper's rows train D from scratch; the prior row starts from the shipped prior
     carve: bool = False  # the silhouette model S carves the hull (not in the paper; the product's default)
     label: dict[str, bool] = field(default_factory=dict)
+
+    def overrides(self) -> dict[str, dict[str, Any]]:
+        """The row's settings, per config table."""
+        return {"mask_data": {"strategy": self.strategy},
+                "finetune": {"domain": self.domain, "use_u": self.use_u, "levels": self.levels, "prior": self.prior},
+                "repair": {"carve": self.carve}}
 
 
 ROWS: dict[str, Row] = {r.name: r for r in (
@@ -48,6 +56,8 @@ ROWS: dict[str, Row] = {r.name: r for r in (
 PAPER_ROWS = ("loo-rgb", "offline-rgb", "orm-rgb", "orm-wavelet", "orm-wavelet-u", "orm-wavelet-u-prior",
               "orm-wavelet-u-prior-carve", "3dgs")
 TIME_OF = "orm-wavelet-u-prior"  # plain 3DGS gets the time of the full method (wgs all's default)
+TABLE_OF = {s.name: s.table for s in REGISTRY}
+AFTER_PAIRS = tuple(s.name for s in REGISTRY if s.name not in stages_through("mask_data"))  # a row's own stages
 
 
 def parse_rows(spec: str) -> list[Row]:
@@ -80,58 +90,47 @@ def row_times(ws: Workspace) -> dict[str, float]:
 
 def run_ablation(ctx, scene_dir: Path, root: Path, rows: list[Row], repeats: int, preset: str | None,
                  prepare_overrides: dict[str, Any]) -> list[dict[str, Any]]:
-    from .stages.s0_prepare import run_prepare
-    from .stages.s1_coarse import run_coarse
-    from .stages.s2_mask_data import run_mask_data
-    from .stages.s3_finetune import run_finetune
-    from .stages.s4_repair import run_repair
-    from .stages.s5_fine import run_fine
-    from .stages.s6_eval import run_eval
+    from .stages import run_stage
 
     device = ctx.torch_device()
     records: list[dict[str, Any]] = []
     for rep in range(repeats):
         seed = ctx.seed + rep
         base = root / f"repeat{rep}" if repeats > 1 else root
+        env = ctx.env(device, seed=seed, scene_dir=scene_dir)
 
         def workspace(name: str, base: Path = base) -> Workspace:
             return Workspace(base / name, resume=ctx.resume, checkpoint_every=ctx.checkpoint_every)
 
+        def run(ws: Workspace, stages: tuple[str, ...], overrides: dict[str, dict[str, Any]], env=env) -> None:
+            for name in stages:
+                table = TABLE_OF[name]
+                run_stage(name, ws, ctx.config(table, preset, **overrides.get(table, {})), env)
+
         shared = workspace("_shared")
-        run_prepare(shared, scene_dir, ctx.config("prepare", preset, **prepare_overrides))
-        run_coarse(shared, ctx.config("coarse", preset), device, seed)
+        run(shared, stages_through("coarse"), {"prepare": prepare_overrides})
         masks: dict[str, Workspace] = {}
         timings: dict[str, dict[str, float]] = {}
         for row in rows:
             ws = workspace(row.name)
             log(f"ablate: row {row.name} (repeat {rep + 1}/{repeats})")
             if row.strategy is None:
-                budget = sum(timings[TIME_OF].values())
                 copy_stages(shared, ws, ("scene",))
-                cfg = ctx.config("coarse", preset)
-                # the time budget decides: schedules follow its elapsed fraction (iterations only cap it)
-                scale = budget / max(shared.manifest("coarse")["train_seconds"], 1e-9)
-                cfg.iterations = int(cfg.iterations * scale * 4)
-                cfg.refine_stop = int(cfg.refine_stop * scale * 4)
-                cfg.max_seconds = budget - shared.manifest("scene")["wall_time_s"]
-                cfg.ensemble = 1  # plain 3DGS: one model for the whole budget
-                run_coarse(ws, cfg, device, seed)
-                run_eval(ws, ctx.config("eval", preset), device, final="coarse")
+                budget = sum(t for st, t in timings[TIME_OF].items() if st != "scene")
+                coarse_s = shared.manifest("coarse")["train_seconds"]
+                cfg = plain_3dgs_config(ctx.config("coarse", preset), budget, coarse_s)
+                run_stage("coarse", ws, cfg, env)
+                run(ws, ("eval",), {}, dataclasses.replace(env, final="coarse"))
                 timings[row.name] = {"scene": ws.manifest("scene")["wall_time_s"],
                                      "coarse": ws.manifest("coarse")["wall_time_s"]}
             else:
                 if row.strategy not in masks:
                     mws = workspace(f"_mask_{row.strategy}")
                     copy_stages(shared, mws, stages_through("coarse"))
-                    md = ctx.config("mask_data", preset, strategy=row.strategy)
-                    run_mask_data(mws, md, device, seed)
+                    run(mws, ("mask_data",), row.overrides())
                     masks[row.strategy] = mws
                 copy_stages(masks[row.strategy], ws, stages_through("mask_data"))
-                run_finetune(ws, ctx.config("finetune", preset, domain=row.domain, use_u=row.use_u,
-                                            levels=row.levels, prior=row.prior), device, seed)
-                run_repair(ws, ctx.config("repair", preset, carve=row.carve), device, seed)
-                run_fine(ws, ctx.config("fine", preset), device, seed)
-                run_eval(ws, ctx.config("eval", preset), device, final="fine", seed=seed)
+                run(ws, AFTER_PAIRS, row.overrides())
                 timings[row.name] = row_times(ws)
             res = read_json(ws.stage_dir("eval") / RESULTS)
             records.append({"row": row.name, "repeat": rep, "seed": seed, "psnr": res["psnr"], "ssim": res["ssim"],

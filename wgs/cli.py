@@ -104,14 +104,12 @@ def stage_common(f):
 def prepare(obj: Ctx, scene: Path, views, downscale, max_pixels, matcher, force, preset) -> None:
     """Import SCENE (COLMAP, Blender, instant-ngp/nerfstudio, IDR, LLFF, or photos without poses,
     which structure-from-motion poses) into the workspace."""
-    from .stages.s0_prepare import run_prepare
-
     cfg = obj.config("prepare", preset, views=views, downscale=downscale, max_pixels=max_pixels, matcher=matcher)
     if cfg.views is not None and cfg.views < 2:
         raise WgsError(f"--views must be at least 2, got {cfg.views}")
     if cfg.downscale < 1:
         raise WgsError(f"--downscale must be a positive integer, got {cfg.downscale}")
-    run_prepare(obj.ws(), scene, cfg, force=force)
+    obj.run_stage("scene", cfg, force, scene_dir=scene)
 
 
 @cli.command()

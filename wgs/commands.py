@@ -28,13 +28,11 @@ def register(cli, stage_common, workspace_option) -> None:
     @click.pass_obj
     def coarse(obj, iterations, max_seconds, sh_degree, ensemble, force, preset):
         """Train the coarse 3DGS G_c on the training views."""
-        from .stages.s1_coarse import run_coarse
-
         cfg = obj.config("coarse", preset, iterations=iterations, max_seconds=max_seconds, sh_degree=sh_degree,
                          ensemble=ensemble)
         if not 0 <= cfg.sh_degree <= 3:
             raise click.BadParameter(f"SH degree must be 0..3, got {cfg.sh_degree}", param_hint="--sh-degree")
-        run_coarse(obj.ws(), cfg, obj.torch_device(), obj.seed, force=force)
+        obj.run_stage("coarse", cfg, force)
 
     @cli.command("mask-data")
     @click.option("--strategy", type=click.Choice(["orm", "offline-rm", "loo"]), default=None,
@@ -48,11 +46,9 @@ def register(cli, stage_common, workspace_option) -> None:
     @click.pass_obj
     def mask_data(obj, strategy, iterations, n_regions, coverage, force, preset):
         """Corrupted/clean pairs for the repair models (trains G_d, or N models for loo)."""
-        from .stages.s2_mask_data import run_mask_data
-
         cfg = obj.config("mask_data", preset, strategy=strategy, iterations=iterations, n_regions=n_regions,
                          coverage=coverage)
-        run_mask_data(obj.ws(), cfg, obj.torch_device(), obj.seed, force=force)
+        obj.run_stage("mask_data", cfg, force)
 
     @cli.command()
     @click.option("--domain", type=click.Choice(["wavelet", "rgb"]), default=None,
@@ -74,12 +70,10 @@ def register(cli, stage_common, workspace_option) -> None:
     def finetune(obj, domain, no_u, levels, d_steps, diffusion, sd_model, controlnet, u_max_steps, prior, force,
                  preset):
         """Fine-tune the repair model D (from the pretrained prior) and the HF U-Net U on this object."""
-        from .stages.s3_finetune import run_finetune
-
         cfg = obj.config("finetune", preset, domain=domain, use_u=False if no_u else None, levels=levels,
                          d_steps=d_steps, u_max_steps=u_max_steps, diffusion=diffusion, sd_model=sd_model,
                          controlnet=controlnet, prior=prior)
-        run_finetune(obj.ws(), cfg, obj.torch_device(), obj.seed, force=force)
+        obj.run_stage("finetune", cfg, force)
 
     @cli.command()
     @click.option("--poses", type=click.Choice(["sphere", "arc"]), default=None,
@@ -95,11 +89,9 @@ def register(cli, stage_common, workspace_option) -> None:
     @click.pass_obj
     def repair(obj, poses, num_views, strength, steps, views_per_train, carve, force, preset):
         """Render G_c at novel views and repair them with D and U -> pseudo references."""
-        from .stages.s4_repair import run_repair
-
         cfg = obj.config("repair", preset, poses=poses, num_views=num_views, strength=strength, steps=steps,
                          views_per_train=views_per_train, carve=carve)
-        run_repair(obj.ws(), cfg, obj.torch_device(), obj.seed, force=force)
+        obj.run_stage("repair", cfg, force)
 
     @cli.command()
     @click.option("--iterations", type=int, default=None, help="Training iterations (per round).")
@@ -113,11 +105,9 @@ def register(cli, stage_common, workspace_option) -> None:
     @click.pass_obj
     def fine(obj, iterations, rounds, lpips_weights, start, force, preset):
         """Train G_f on the real and the pseudo references."""
-        from .stages.s5_fine import run_fine
-
         cfg = obj.config("fine", preset, iterations=iterations, rounds=rounds, lpips_weights=lpips_weights,
                          start=start)
-        run_fine(obj.ws(), cfg, obj.torch_device(), obj.seed, force=force)
+        obj.run_stage("fine", cfg, force)
 
     @cli.command("eval")
     @click.option("--lpips-net", type=click.Choice(["alex", "vgg"]), default=None, help="LPIPS backbone.")
@@ -132,12 +122,10 @@ def register(cli, stage_common, workspace_option) -> None:
     @click.pass_obj
     def eval_(obj, lpips_net, lpips_weights, max_views, repair_gain_views, baseline, force, preset):
         """PSNR, SSIM, LPIPS of G_f and G_c on the test views, and the error-against-time report."""
-        from .stages.s6_eval import run_eval
-
         final = "fine" if obj.ws().manifest("fine") is not None else "coarse"
         cfg = obj.config("eval", preset, lpips_net=lpips_net, lpips_weights=lpips_weights, max_views=max_views,
                          repair_gain_views=repair_gain_views, baseline=baseline)
-        run_eval(obj.ws(), cfg, obj.torch_device(), force=force, final=final, seed=obj.seed)
+        obj.run_stage("eval", cfg, force, final=final)
 
     @cli.command("all")
     @click.argument("scene", type=click.Path(path_type=Path))

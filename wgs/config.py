@@ -207,13 +207,15 @@ class Stage:
     """One stage of the pipeline, the one place its facts live: `name` keys the workspace (manifests,
     `Workspace.stage_dir`), `folder` is its folder in the workspace, `command` its `wgs` command,
     `config` its settings (the [table] named like the command, '-' as '_'), `upstream` the stages
-    whose outputs it reads (their fingerprints make it stale), `method` False for what only measures."""
+    whose outputs it reads (their fingerprints make it stale), `runner` its run function
+    (`module:function` in wgs.stages, see `stages.run_stage`), `method` False for what only measures."""
 
     name: str
     folder: str
     command: str
     config: type
     upstream: tuple[str, ...]
+    runner: str
     method: bool = True
 
     @property
@@ -222,13 +224,14 @@ class Stage:
 
 
 REGISTRY: tuple[Stage, ...] = (
-    Stage("scene", "scene", "prepare", PrepareConfig, ()),
-    Stage("coarse", "1_coarse", "coarse", CoarseConfig, ("scene",)),
-    Stage("mask_data", "2_mask_data", "mask-data", MaskDataConfig, ("scene", "coarse")),
-    Stage("finetune", "3_finetune", "finetune", FinetuneConfig, ("coarse", "mask_data")),
-    Stage("repair", "4_repair", "repair", RepairConfig, ("scene", "coarse", "finetune")),
-    Stage("fine", "5_fine", "fine", FineConfig, ("scene", "coarse", "finetune", "repair")),  # rounds repair again
-    Stage("eval", "6_eval", "eval", EvalConfig, ("scene", "coarse", "fine"), method=False),
+    Stage("scene", "scene", "prepare", PrepareConfig, (), "s0_prepare:run_prepare"),
+    Stage("coarse", "1_coarse", "coarse", CoarseConfig, ("scene",), "s1_coarse:run_coarse"),
+    Stage("mask_data", "2_mask_data", "mask-data", MaskDataConfig, ("scene", "coarse"), "s2_mask_data:run_mask_data"),
+    Stage("finetune", "3_finetune", "finetune", FinetuneConfig, ("coarse", "mask_data"), "s3_finetune:run_finetune"),
+    Stage("repair", "4_repair", "repair", RepairConfig, ("scene", "coarse", "finetune"), "s4_repair:run_repair"),
+    # fine rounds run the repair again, so it reads finetune's models too
+    Stage("fine", "5_fine", "fine", FineConfig, ("scene", "coarse", "finetune", "repair"), "s5_fine:run_fine"),
+    Stage("eval", "6_eval", "eval", EvalConfig, ("scene", "coarse", "fine"), "s6_eval:run_eval", method=False),
 )
 STAGES: dict[str, type] = {s.table: s.config for s in REGISTRY}  # config table -> settings class
 METHOD: tuple[str, ...] = tuple(s.name for s in REGISTRY if s.method)  # what a reconstruction runs, in order

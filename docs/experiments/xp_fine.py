@@ -10,7 +10,7 @@ import torch
 from wgs.config import CKPT, resolve
 from wgs.gaussians.splats import load_checkpoint
 from wgs.scene.dataset import load_prepared
-from wgs.stages.s5_fine import run_fine
+from wgs.stages import StageEnv, run_stage
 from wgs.stages.s6_eval import evaluate_model
 from wgs.stages.shared import background_for
 from wgs.workspace import STAGE_DIRS, Workspace
@@ -35,7 +35,7 @@ if __name__ == "__main__":
     ws = Workspace(root)
     seed = int(over.pop("seed", 0))
     t0 = time.perf_counter()
-    run_fine(ws, resolve("fine", cli=over), torch.device("cpu"), seed, force=True)
+    run_stage("fine", ws, resolve("fine", cli=over), StageEnv(torch.device("cpu"), seed), force=True)
     secs = time.perf_counter() - t0
     p = test_psnr(ws, "fine")
     res = {"tag": tag, "over": over, "seed": seed, "repair": str(repair), "gf": round(p, 4), "fine_s": round(secs, 1)}

@@ -74,12 +74,12 @@ if __name__ == "__main__":
     fcfg = resolve("finetune", cli={"prior_steps": steps})
     start = ws.stage_dir("finetune")
     t0 = time.perf_counter()
-    model, extra, curve = finetune_prior_d(fcfg, start, c, b, lc[hold], lb[hold], dev, gen)
-    print(f"finetune {time.perf_counter() - t0:.0f} s; held-out LOO MSE {curve['prior_val']:.5f} -> "
-          f"{curve['best_val']:.5f} (stopped {curve['stopped_at']})", flush=True)
+    model, meta, curve = finetune_prior_d(fcfg, start, c, b, lc[hold], lb[hold], dev, gen)
+    print(f"finetune {time.perf_counter() - t0:.0f} s; held-out LOO MSE {curve['bar']:.5f} -> "
+          f"{curve['best']:.5f} (stopped {curve['stopped_at']})", flush=True)
     folder = out / f"ft_{mix}_{steps}_{npose}"
     shutil.rmtree(folder, ignore_errors=True)
-    save_model(folder / "D", model, extra)
+    save_model(folder / "D", model, meta.to_config())
     if (start / "U").is_dir():
         shutil.copytree(start / "U", folder / "U")
     test = scene.test[::5]

@@ -13,6 +13,7 @@ import torch
 from ..config import RepairConfig
 from ..wavelet.haar import dwt2, idwt2, split_highs, stack_highs
 from .data import from_model, to_model
+from .denoiser_meta import DenoiserMeta
 from .sampling import sdedit_repair, single_step
 from .scheduler import DDIMScheduler
 from .storage import load_model
@@ -60,21 +61,21 @@ def symmetrized(fn: RepairFn, n: int, first: int = 0) -> RepairFn:
 
 @dataclass(frozen=True)
 class Repairer:
-    """What repairs a render: D's function (model space), U (or None), D's config, and under how many
-    of the square's symmetries each render is repaired (RepairConfig.symmetries)."""
+    """What repairs a render: D's function (model space), U (or None), D's metadata, and under how
+    many of the square's symmetries each render is repaired (RepairConfig.symmetries)."""
 
     fn: RepairFn
     U: torch.nn.Module | None
-    d_cfg: dict
+    meta: DenoiserMeta
     symmetries: int = 1
 
 
-def embedded_repairer(D: torch.nn.Module, cfg: RepairConfig, d_cfg: dict, gen: torch.Generator,
+def embedded_repairer(D: torch.nn.Module, cfg: RepairConfig, meta: DenoiserMeta, gen: torch.Generator,
                       device: torch.device) -> RepairFn:
     """SDEdit for a D trained by denoising; one step from the render for a prior-trained D."""
-    sched = DDIMScheduler(d_cfg.get("train_timesteps", 1000))
-    if d_cfg.get("start") == "corrupted":
-        return lambda x: single_step(D, sched, x.to(device), d_cfg.get("repair_t", 0), gen).cpu()
+    sched = DDIMScheduler(meta.train_timesteps)
+    if meta.start == "corrupted":
+        return lambda x: single_step(D, sched, x.to(device), meta.repair_t, gen).cpu()
     return lambda x: sdedit_repair(D, sched, x.to(device), cfg.strength, cfg.steps, gen).cpu()
 
 
@@ -129,10 +130,12 @@ def load_repairer(folder: Path, cfg: RepairConfig, device: torch.device, seed: i
         from .controlnet_lora import load_lora
 
         pipe, d_cfg = load_lora(folder / "D_lora", device)
+        meta = DenoiserMeta.from_config(d_cfg, folder / "D_lora")
         repair_fn = controlnet_repairer(pipe, cfg, seed)
     else:
         D, d_cfg = load_model(folder / "D", device)
-        repair_fn = embedded_repairer(D, cfg, d_cfg, gen, device)
+        meta = DenoiserMeta.from_config(d_cfg, folder / "D" / "config.json")
+        repair_fn = embedded_repairer(D, cfg, meta, gen, device)
     u_dir = folder / "U"
-    U = load_model(u_dir, device)[0] if (d_cfg.get("domain", "wavelet") == "wavelet" and u_dir.is_dir()) else None
-    return Repairer(repair_fn, U, d_cfg, cfg.symmetries)
+    U = load_model(u_dir, device)[0] if (meta.domain == "wavelet" and u_dir.is_dir()) else None
+    return Repairer(repair_fn, U, meta, cfg.symmetries)

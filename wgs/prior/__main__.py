@@ -155,9 +155,12 @@ def _device(name: str):
 @main.command("train-shape")
 @click.option("--out", type=click.Path(path_type=Path), default=None, help="default: the package's weights/S")
 @click.option("--steps", type=int, default=None, help="training steps")
+@click.option("--work-size", type=int, default=None, help="S's working size in px (default: the network config's)")
+@click.option("--levels", type=int, default=None, help="S's downsamplings (default: the network config's)")
 @click.option("--device", default="auto", show_default=True, help="auto | cpu | cuda")
 @click.pass_obj
-def train_shape(cache: Path, out: Path | None, steps: int | None, device: str) -> None:
+def train_shape(cache: Path, out: Path | None, steps: int | None, work_size: int | None, levels: int | None,
+                device: str) -> None:
     """Train the silhouette model S on the pairs' hull channels (held-out objects measure it)."""
     import json
 
@@ -167,7 +170,11 @@ def train_shape(cache: Path, out: Path | None, steps: int | None, device: str) -
     cfg = ShapeTrainConfig()
     if steps is not None:
         cfg.steps = steps
-    data = load_shape_pairs(cache / "pairs")
+    if work_size is not None:
+        cfg.net.work_size = work_size
+    if levels is not None:
+        cfg.net.levels = levels
+    data = load_shape_pairs(cache / "pairs", cfg.net.work_size)
     click.echo(f"S: {len(data['target'])} pairs from {len(data['names'])} pair files, "
                f"{int(data['holdout'].sum())} held out")
     model, curve = train_silhouette(data, cfg, _device(device), log=click.echo)
@@ -176,7 +183,8 @@ def train_shape(cache: Path, out: Path | None, steps: int | None, device: str) -
     held = sorted({data["names"][int(i)] for i in data["object"][data["holdout"]].unique()})
     (out / "provenance.json").write_text(json.dumps(
         {"pairs": int((~data["holdout"]).sum()), "objects": data["names"], "holdout_objects": held,
-         "curve": curve, "command": f"python -m wgs.prior --cache CACHE train-shape --steps {cfg.steps}"}, indent=1))
+         "curve": curve, "command": f"python -m wgs.prior --cache CACHE train-shape --steps {cfg.steps} "
+                    f"--work-size {cfg.net.work_size} --levels {cfg.net.levels}"}, indent=1))
     click.echo(f"S: {curve['seconds']} s -> {out}")
 
 
@@ -192,8 +200,9 @@ def shape_curve_cmd(cache: Path, fractions: str, steps: int, device: str, out: P
 
     from .train_shape import ShapeTrainConfig, load_shape_pairs, shape_curve
 
-    rows = shape_curve(load_shape_pairs(cache / "pairs"), [float(f) for f in fractions.split(",")],
-                       ShapeTrainConfig(steps=steps), _device(device), log=click.echo)
+    cfg = ShapeTrainConfig(steps=steps)
+    rows = shape_curve(load_shape_pairs(cache / "pairs", cfg.net.work_size), [float(f) for f in fractions.split(",")],
+                       cfg, _device(device), log=click.echo)
     if out is not None:
         out.write_text(json.dumps(rows, indent=1))
 

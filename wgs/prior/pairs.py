@@ -39,13 +39,13 @@ def object_pairs(scene_dir: Path, work: Path, views: int, coarse_overrides: dict
     """prepare + coarse on `views` views of the scene, then G_c at every test pose -> arrays.
     One coarse model per object (the product's ensemble would cost ten for the same pairs)."""
     from ..config import CKPT
-    from ..stages.s0_prepare import run_prepare
-    from ..stages.s1_coarse import run_coarse
+    from ..stages import StageEnv, run_stage
 
     ws = Workspace(work)
     t0 = time.perf_counter()
-    run_prepare(ws, scene_dir, resolve("prepare", cli={"views": views}))
-    run_coarse(ws, resolve("coarse", cli={"ensemble": 1, **coarse_overrides}), torch.device("cpu"), seed)
+    env = StageEnv(torch.device("cpu"), seed, scene_dir=scene_dir)
+    run_stage("scene", ws, resolve("prepare", cli={"views": views}), env)
+    run_stage("coarse", ws, resolve("coarse", cli={"ensemble": 1, **coarse_overrides}), env)
     scene = load_prepared(ws.stage_dir("scene"), load_test_images=True)
     splats, _ = load_checkpoint(ws.stage_dir("coarse") / CKPT, scene.norm)
     bg = torch.ones(3)

@@ -8,7 +8,7 @@ low noise and ignores the corrupted control signal, which is why a from-scratch 
 
 from __future__ import annotations
 
-import copy
+import dataclasses
 import json
 import math
 import time
@@ -22,12 +22,13 @@ import torch
 from ..errors import InputError
 from ..io import atomic_path
 from ..models.data import random_crops, to_model
+from ..models.denoiser_meta import DenoiserMeta
 from ..models.hf_unet import HFUNet, HFUNetConfig
 from ..models.ll_denoiser import LLDenoiser, LLDenoiserConfig
-from ..models.optim import clipped_step
-from ..models.sampling import single_step
-from ..models.scheduler import DDIMScheduler
-from ..wavelet.haar import dwt2, stack_highs
+from ..training.denoiser import psnr_model_space, train_denoiser
+from ..training.hf import identity_l1, train_hf
+from ..training.loop import FitPlan, FitState
+from ..wavelet.haar import dwt2
 from . import WEIGHTS  # noqa: F401  (re-exported for the CLI)
 
 
@@ -86,7 +87,7 @@ def corpus_curve(pack: Path, fractions: list[float], cfg: PriorConfig, device: t
     data = load_pack(pack)
     rows = []
     for row, use in growing_subsets(data["object"], data["holdout"], fractions, cfg.seed):
-        _, curve = train_d(cfg, data["render"][use], data["ref"][use], data["holdout"][use], device, log)
+        _, curve, _ = train_d(cfg, data["render"][use], data["ref"][use], data["holdout"][use], device, log)
         rows.append({**row, "identity_psnr": curve["val_identity_psnr"], "repaired_psnr": curve["val_psnr"][-1],
                      "gain_db": curve["val_psnr"][-1] - curve["val_identity_psnr"]})
         log(f"curve: {rows[-1]}")
@@ -130,114 +131,92 @@ def ll_of(x: torch.Tensor) -> torch.Tensor:
     return to_model(dwt2(x, 1)[0], "wavelet", 1)
 
 
-def psnr_model_space(a: torch.Tensor, b: torch.Tensor) -> float:
-    mse = (a - b).pow(2).mean().item()
-    return 10 * math.log10(4.0 / max(mse, 1e-12))  # model space spans 2
+class StateFile:
+    """The prior's training state in one file, saved at every record and continued from; a state
+    of another configuration is refused (`training.loop.LoopCheckpoint`)."""
+
+    def __init__(self, path: Path, config: dict):
+        self.path, self.config = path, config
+
+    def load(self) -> dict | None:
+        if not self.path.is_file():
+            return None
+        saved = torch.load(self.path, map_location="cpu", weights_only=False)
+        if saved.get("config") != self.config:
+            raise InputError("training state of another configuration; delete it to start over", self.path)
+        return saved
+
+    def due(self) -> bool:
+        return True
+
+    def save(self, state: dict) -> None:
+        with atomic_path(self.path) as tmp:
+            torch.save({**state, "config": self.config}, tmp)
+
+
+PRIOR_D = DenoiserMeta(domain="wavelet", levels=1, start="corrupted", repair_t=0)
 
 
 def train_d(cfg: PriorConfig, render: torch.Tensor, ref: torch.Tensor, hold: torch.Tensor, device: torch.device,
-            log=print, init: LLDenoiser | None = None, state_path: Path | None = None) -> tuple[LLDenoiser, dict]:
-    """D trained on the pairs; `init`: start from these weights (a prior trained on another corpus);
-    `state_path`: the training state saved there every `eval_every` steps, and continued from."""
+            log=print, init: LLDenoiser | None = None, state_path: Path | None = None
+            ) -> tuple[LLDenoiser, dict, DenoiserMeta]:
+    """D trained on the pairs (`training.denoiser`, from the render); `init`: start from these
+    weights (a prior trained on another corpus); `state_path`: the training state saved there
+    at every record, and continued from. Returns the EMA model, its curve and its metadata."""
+    t0 = time.perf_counter()
     gen = torch.Generator().manual_seed(cfg.seed)
+    meta = dataclasses.replace(PRIOR_D, train_timesteps=cfg.train_timesteps, t_max=cfg.t_max)
     tr, va = (~hold).nonzero()[:, 0], hold.nonzero()[:, 0]
-    bad_v, clean_v = ll_of(render[va]).to(device), ll_of(ref[va]).to(device)
+    held = (ll_of(ref[va]).to(device), ll_of(render[va]).to(device))
+    identity = psnr_model_space(float((held[1] - held[0]).pow(2).mean()))
     render, ref = render.to(device), ref.to(device)
     model = LLDenoiser(LLDenoiserConfig(3, cfg.d_channels)).to(device)
     if init is not None:
         model.load_state_dict(init.state_dict())
-    ema = copy.deepcopy(model).eval()
-    sched = DDIMScheduler(cfg.train_timesteps)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.d_lr, weight_decay=1e-4)
-    lr_at = lambda s: (cfg.d_lr * min(1.0, s / max(cfg.warmup, 1))  # noqa: E731
-                       * 0.5 * (1 + math.cos(math.pi * s / cfg.d_steps)))
-    curve = {"step": [], "loss": [], "val_psnr": [], "val_identity_psnr": psnr_model_space(bad_v, clean_v)}
-    acc, t0, start = 0.0, time.perf_counter(), 1
-    if state_path is not None and state_path.is_file():
-        saved = torch.load(state_path, map_location=device, weights_only=False)
-        if saved["config"] != asdict(cfg):
-            raise InputError("training state of another configuration; delete it to start over", state_path)
-        model.load_state_dict(saved["model"])
-        ema.load_state_dict(saved["ema"])
-        opt.load_state_dict(saved["opt"])
-        gen.set_state(saved["generator"])
-        curve, start = saved["curve"], saved["step"] + 1
-        t0 -= saved["seconds"]
-        log(f"D: continuing from step {saved['step']} ({state_path})")
-    for step in range(start, cfg.d_steps + 1):
-        for g in opt.param_groups:
-            g["lr"] = lr_at(step)
+    plan = FitPlan(cfg.d_steps, cfg.d_lr, cfg.eval_every, warmup=cfg.warmup, ema_decay=cfg.ema_decay)
+
+    def batch() -> tuple[torch.Tensor, torch.Tensor]:
         idx = tr[torch.randint(len(tr), (cfg.d_batch,), generator=gen)]
         r, c = augmented_batch(render, ref, idx.to(render.device), 2 * cfg.d_crop, (cfg.min_scale, cfg.max_scale), gen)
         same = (torch.rand(len(idx), generator=gen) < cfg.identity_frac).to(r.device)
         r = torch.where(same[:, None, None, None], c, r)
-        bad, clean = ll_of(r), ll_of(c)
-        t = torch.randint(cfg.t_max, (clean.shape[0],), generator=gen)
-        noise = torch.randn(bad.shape, generator=gen).to(device)
-        pred = model(sched.add_noise(bad, noise, t.to(device)), t.to(device), bad)
-        loss = ((pred - clean).pow(2) + cfg.charbonnier**2).sqrt().mean()
-        acc += clipped_step(opt, model, loss, "prior D", step, ema, cfg.ema_decay)
-        if step % cfg.eval_every == 0 or step == cfg.d_steps:
-            with torch.no_grad():
-                rep = torch.cat([single_step(ema, sched, bad_v[i:i + 64], 0) for i in range(0, len(va), 64)])
-            curve["step"].append(step)
-            curve["loss"].append(acc / cfg.eval_every)
-            curve["val_psnr"].append(psnr_model_space(rep, clean_v))
-            acc = 0.0
-            if state_path is not None:
-                with atomic_path(state_path) as tmp:
-                    torch.save({"config": asdict(cfg), "model": model.state_dict(), "ema": ema.state_dict(),
-                                "opt": opt.state_dict(), "generator": gen.get_state(), "curve": curve,
-                                "step": step, "seconds": time.perf_counter() - t0}, tmp)
-            log(f"D step {step}: loss {curve['loss'][-1]:.5f}  held-out LL PSNR {curve['val_identity_psnr']:.2f} "
-                f"-> {curve['val_psnr'][-1]:.2f} dB  ({time.perf_counter() - t0:.0f} s)")
-    return ema, curve
+        return ll_of(c), ll_of(r)
 
+    def report(st: FitState) -> None:
+        log(f"D step {st.step}: loss {st.curve['loss'][-1]:.5f}  held-out LL PSNR {identity:.2f} "
+            f"-> {psnr_model_space(st.curve['val'][-1]):.2f} dB  ({time.perf_counter() - t0:.0f} s)")
 
-def hf_triplet(render: torch.Tensor, ref: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    ll_c, [h_c] = dwt2(render, 1)
-    _, [h_r] = dwt2(ref, 1)
-    return stack_highs(h_c), ll_c, stack_highs(h_r)
+    model, st = train_denoiser(model, meta, batch, plan, gen, opt, held=held, charbonnier=cfg.charbonnier,
+                               name="prior D", on_record=report,
+                               checkpoint=None if state_path is None else StateFile(state_path, asdict(cfg)))
+    curve = {**st.summary(), "val_psnr": [psnr_model_space(v) for v in st.curve["val"]], "val_identity_psnr": identity}
+    return model, curve, meta
 
 
 def train_u(cfg: PriorConfig, render: torch.Tensor, ref: torch.Tensor, hold: torch.Tensor, device: torch.device,
             log=print, init: HFUNet | None = None) -> tuple[HFUNet, dict]:
-    """U trained on the pairs (from `init`'s weights when given); the best held-out state is kept."""
+    """U trained on the pairs (`training.hf`; from `init`'s weights when given); the best held-out
+    state is kept."""
     gen = torch.Generator().manual_seed(cfg.seed + 1)
     tr, va = (~hold).nonzero()[:, 0], hold.nonzero()[:, 0]
-    v = [t.to(device) for t in hf_triplet(render[va], ref[va])]
+    held = (render[va].to(device), ref[va].to(device))
     render, ref = render.to(device), ref.to(device)
     model = HFUNet(HFUNetConfig(channels=cfg.u_channels)).to(device)
     if init is not None:
         model.load_state_dict(init.state_dict())
     opt = torch.optim.Adam(model.parameters(), lr=cfg.u_lr)
+    plan = FitPlan(cfg.u_steps, cfg.u_lr, cfg.eval_every, max_norm=None, keep_best=True)
 
-    @torch.no_grad()
-    def held_out_l1() -> float:
-        return float(np.mean([(model(v[0][i:i + 64], v[1][i:i + 64]) - v[2][i:i + 64]).abs().mean().item()
-                              for i in range(0, len(va), 64)]))
-
-    identity = (v[0] - v[2]).abs().mean().item()
-    best, best_state = (identity if init is None else held_out_l1()), copy.deepcopy(model.state_dict())
-    curve = {"step": [], "val_l1": [], "identity_l1": identity}
-    for step in range(1, cfg.u_steps + 1):
+    def batch() -> tuple[torch.Tensor, torch.Tensor]:
         idx = tr[torch.randint(len(tr), (cfg.u_batch,), generator=gen)]
-        hc, ll, hr = hf_triplet(*augmented_batch(render, ref, idx.to(render.device), cfg.u_crop,
-                                                 (cfg.min_scale, cfg.max_scale), gen))
-        loss = (model(hc, ll) - hr).abs().mean()
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        if step % cfg.eval_every == 0 or step == cfg.u_steps:
-            vl = held_out_l1()
-            curve["step"].append(step)
-            curve["val_l1"].append(vl)
-            if vl < best:
-                best, best_state = vl, copy.deepcopy(model.state_dict())
-            log(f"U step {step}: held-out HF L1 {identity:.5f} -> {vl:.5f}")
-    model.load_state_dict(best_state)
-    curve["best_val_l1"] = best
-    return model.eval(), curve
+        return augmented_batch(render, ref, idx.to(render.device), cfg.u_crop, (cfg.min_scale, cfg.max_scale), gen)
+
+    identity = identity_l1(*held)
+    model, st, _ = train_hf(model, batch, plan, gen, opt, held, start_is_bar=init is not None, name="prior U",
+                                   on_record=lambda st: log(f"U step {st.step}: held-out HF L1 {identity:.5f} "
+                                                            f"-> {st.curve['val'][-1]:.5f}"))
+    return model, {**st.summary(), "identity": identity}
 
 
 def train_prior(pack: Path, out: Path, cfg: PriorConfig, device: torch.device, provenance: dict | None = None,
@@ -256,10 +235,9 @@ def train_prior(pack: Path, out: Path, cfg: PriorConfig, device: torch.device, p
         provenance = {**(provenance or {}), "init": {"path": str(init), "provenance": json.loads(prov.read_text())
                                                      if prov.is_file() else None}}
     t0 = time.perf_counter()
-    d, d_curve = train_d(cfg, data["render"], data["ref"], data["holdout"], device, log, d_init,
-                         None if state_dir is None else state_dir / "train_state_D.pt")
-    save_model(out / "D", d, {"domain": "wavelet", "levels": 1, "train_timesteps": cfg.train_timesteps,
-                              "start": "corrupted", "t_max": cfg.t_max, "repair_t": 0})
+    d, d_curve, meta = train_d(cfg, data["render"], data["ref"], data["holdout"], device, log, d_init,
+                               None if state_dir is None else state_dir / "train_state_D.pt")
+    save_model(out / "D", d, meta.to_config())
     t1 = time.perf_counter()
     u, u_curve = train_u(cfg, data["render"], data["ref"], data["holdout"], device, log, u_init)
     save_model(out / "U", u)

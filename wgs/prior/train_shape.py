@@ -11,7 +11,7 @@ from __future__ import annotations
 import copy
 import statistics
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -19,16 +19,16 @@ import torch
 import torch.nn.functional as F
 
 from ..errors import InputError
-from ..models.optim import clipped_step
 from ..models.silhouette_net import SilhouetteNet, SilhouetteNetConfig
-from ..shape.features import CHANNELS, silhouette_inputs, to_work_size
+from ..shape.features import predict_batch, silhouette_inputs, to_work_size
 from ..shape.scores import silhouette_scores
+from ..training.loop import FitPlan, FitState, fit
 from .train import growing_subsets
 
 
 @dataclass
 class ShapeTrainConfig:
-    channels: int = 16
+    net: SilhouetteNetConfig = field(default_factory=SilhouetteNetConfig)
     steps: int = 2500
     batch: int = 8
     lr: float = 2e-3
@@ -39,8 +39,8 @@ class ShapeTrainConfig:
     seed: int = 0
 
 
-def load_shape_pairs(pairs_dir: Path) -> dict[str, torch.Tensor]:
-    """The pair files that carry the hull channels, at S's working size: inputs [N, 6, h, w], target
+def load_shape_pairs(pairs_dir: Path, work_size: int) -> dict[str, torch.Tensor]:
+    """The pair files that carry the hull channels, at `work_size`: inputs [N, 6, h, w], target
     [N, h, w] (the true alpha's coverage), holdout [N] bool, object [N] (file index), and names (file
     stems)."""
 
@@ -55,9 +55,9 @@ def load_shape_pairs(pairs_dir: Path) -> dict[str, torch.Tensor]:
             hull = torch.from_numpy(z["hull"]).float() / 255
             depth = torch.from_numpy(z["hull_depth"].astype(np.float32))
             x = torch.stack([silhouette_inputs(rgb[i], alpha[i], hull[i], depth[i]) for i in range(len(rgb))])
-            xs.append(to_work_size(x))
+            xs.append(to_work_size(x, work_size))
             true = (torch.from_numpy(z["ref_alpha"]).float() / 255 > 0.5).float()
-            ys.append(to_work_size(true[:, None])[:, 0])
+            ys.append(to_work_size(true[:, None], work_size)[:, 0])
             hold.append(torch.full((len(rgb),), bool(z["holdout"])))
             obj.append(torch.full((len(rgb),), len(names)))
             names.append(f.stem)
@@ -95,7 +95,7 @@ def held_out_scores(model: torch.nn.Module, data: dict[str, torch.Tensor], devic
     rows: dict[str, list[dict[str, float]]] = {"S": [], "hull": [], "coarse": []}
     for chunk in idx.split(32):
         x = data["inputs"][chunk]
-        prob = torch.sigmoid(model(x.to(device))).cpu()[:, 0]
+        prob = predict_batch(model, x)
         for j in range(len(chunk)):
             true = data["target"][chunk[j]] > 0.5
             rows["S"].append(silhouette_scores(prob[j] > 0.5, true))
@@ -107,38 +107,32 @@ def held_out_scores(model: torch.nn.Module, data: dict[str, torch.Tensor], devic
 
 def train_silhouette(data: dict[str, torch.Tensor], cfg: ShapeTrainConfig, device: torch.device, log=print,
                      init: torch.nn.Module | None = None) -> tuple[SilhouetteNet, dict]:
-    """Train S on the non-held-out pairs; returns the EMA model and its curve (held-out scores)."""
+    """Train S on the non-held-out pairs (`training.loop`); returns the EMA model and its curve
+    (held-out scores at each record)."""
     torch.manual_seed(cfg.seed)
     gen = torch.Generator().manual_seed(cfg.seed)
-    model = (copy.deepcopy(init) if init is not None
-             else SilhouetteNet(SilhouetteNetConfig(CHANNELS, cfg.channels))).to(device).train()
-    ema = copy.deepcopy(model).eval()
+    model = (copy.deepcopy(init) if init is not None else SilhouetteNet(cfg.net)).to(device)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=1e-4)
     train_idx = (~data["holdout"]).nonzero()[:, 0]
     if train_idx.numel() == 0:
         raise InputError("every pair is held out: nothing to train S on")
-    curve: dict = {"step": [], "loss": [], "held_out": []}
-    t0, losses = time.perf_counter(), []
-    for step in range(1, cfg.steps + 1):
-        lr = cfg.lr * min(1.0, step / max(cfg.warmup, 1)) * 0.5 * (1 + np.cos(np.pi * step / cfg.steps))
-        for g in opt.param_groups:
-            g["lr"] = lr
+    plan = FitPlan(cfg.steps, cfg.lr, cfg.eval_every, warmup=cfg.warmup, ema_decay=cfg.ema_decay)
+
+    def batch_loss(step: int) -> torch.Tensor:
         pick = train_idx[torch.randint(0, train_idx.numel(), (cfg.batch,), generator=gen)]
         x, y = augment(data["inputs"][pick], data["target"][pick], gen)
-        loss = weighted_bce(model(x.to(device)), y.to(device), cfg.object_weight)
-        losses.append(clipped_step(opt, model, loss, "S", step, ema, cfg.ema_decay))
-        if step % cfg.eval_every == 0 or step == cfg.steps:
-            scores = held_out_scores(ema, data, device) if data["holdout"].any() else {}
-            curve["step"].append(step)
-            curve["loss"].append(statistics.fmean(losses))
-            curve["held_out"].append(scores)
-            losses = []
-            log(f"S: step {step}/{cfg.steps} loss {curve['loss'][-1]:.4f} held-out IoU "
-                f"S {scores.get('S_iou', float('nan')):.3f} hull {scores.get('hull_iou', float('nan')):.3f} "
-                f"coarse {scores.get('coarse_iou', float('nan')):.3f} ({time.perf_counter() - t0:.0f} s)")
-    curve["seconds"] = round(time.perf_counter() - t0, 1)
-    curve["config"] = asdict(cfg)
-    return ema.cpu(), curve
+        return weighted_bce(model(x.to(device)), y.to(device), cfg.object_weight)
+
+    def report(st: FitState) -> None:
+        scores = st.curve["val"][-1] if st.curve["val"] else {}
+        log(f"S: step {st.step}/{cfg.steps} loss {st.curve['loss'][-1]:.4f} held-out IoU "
+            f"S {scores.get('S_iou', float('nan')):.3f} hull {scores.get('hull_iou', float('nan')):.3f} "
+            f"coarse {scores.get('coarse_iou', float('nan')):.3f} ({time.perf_counter() - t0:.0f} s)")
+
+    t0 = time.perf_counter()
+    evaluate = (lambda m: held_out_scores(m, data, device)) if data["holdout"].any() else None
+    ema, st = fit(model, opt, batch_loss, plan, "S", gen=gen, evaluate=evaluate, on_record=report)
+    return ema.cpu(), {**st.summary(), "config": asdict(cfg)}
 
 
 def shape_curve(data: dict[str, torch.Tensor], fractions: list[float], cfg: ShapeTrainConfig, device: torch.device,
@@ -147,6 +141,6 @@ def shape_curve(data: dict[str, torch.Tensor], fractions: list[float], cfg: Shap
     rows = []
     for row, use in growing_subsets(data["object"], data["holdout"], fractions, cfg.seed):
         _, curve = train_silhouette({k: v[use] for k, v in data.items() if k != "names"}, cfg, device, log)
-        rows.append({**row, **curve["held_out"][-1]})
+        rows.append({**row, **curve["val"][-1]})
         log(f"shape curve: {rows[-1]}")
     return rows

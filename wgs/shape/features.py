@@ -1,6 +1,7 @@
 """What the silhouette model S sees at a pose, computed the same way for its training pairs
 (`prior.pairs`) and in the pipeline: the coarse model's render and opacity, the visual hull's
-silhouette and its depth relative to the hull's centre, at a fixed working size."""
+silhouette and its depth relative to the hull's centre. S runs at its own working size
+(`SilhouetteNetConfig.work_size`)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,6 @@ import torch.nn.functional as F
 from ..scene.camera import Camera
 from .hull import HullGrid, silhouette
 
-WORK_SIZE = 64  # S runs with the image's longer side at this many pixels (its training pairs' too)
 CHANNELS = 6
 
 
@@ -31,10 +31,10 @@ def silhouette_inputs(rgb: torch.Tensor, alpha: torch.Tensor, hull: torch.Tensor
     return torch.cat([rgb.permute(2, 0, 1), alpha[None], hull[None], hull_depth[None]], 0).float()
 
 
-def to_work_size(x: torch.Tensor) -> torch.Tensor:
-    """[B, C, H, W] resized (area-filtered) so that the longer side is WORK_SIZE."""
+def to_work_size(x: torch.Tensor, size: int) -> torch.Tensor:
+    """[B, C, H, W] resized (area-filtered when shrinking) so that the longer side is `size`."""
     h, w = x.shape[-2:]
-    scale = WORK_SIZE / max(h, w)
+    scale = size / max(h, w)
     if abs(scale - 1) < 1e-6:
         return x
     return F.interpolate(x, size=(max(1, round(h * scale)), max(1, round(w * scale))), mode="bilinear",
@@ -43,10 +43,16 @@ def to_work_size(x: torch.Tensor) -> torch.Tensor:
 
 @torch.no_grad()
 def predict_object(model: torch.nn.Module, inputs: torch.Tensor) -> torch.Tensor:
-    """S's object probability [H, W] for inputs [6, H, W]: run at WORK_SIZE, resized back."""
+    """S's object probability [H, W] for inputs [6, H, W]: run at S's working size, resized back."""
+    return predict_batch(model, inputs[None])[0]
+
+
+@torch.no_grad()
+def predict_batch(model: torch.nn.Module, inputs: torch.Tensor) -> torch.Tensor:
+    """S's object probability [B, H, W] for inputs [B, 6, H, W]."""
     h, w = inputs.shape[-2:]
     dev = next(model.parameters()).device
-    prob = torch.sigmoid(model(to_work_size(inputs[None]).to(dev))).cpu()
+    prob = torch.sigmoid(model(to_work_size(inputs, model.config.work_size).to(dev))).cpu()
     if prob.shape[-2:] != (h, w):
         prob = F.interpolate(prob, size=(h, w), mode="bilinear", align_corners=False)
-    return prob[0, 0]
+    return prob[:, 0]

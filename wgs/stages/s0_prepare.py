@@ -15,6 +15,7 @@ from ..scene.sfm import find_photos, pose_photos
 from ..scene.types import RawScene
 from ..threads import thread_count
 from ..workspace import StageRun, Workspace
+from . import StageEnv
 
 SFM_DIR = "sfm"
 SFM_INPUTS = "inputs.sha256"
@@ -49,8 +50,11 @@ def posed_photos(ws: Workspace, scene_dir: Path, cfg: PrepareConfig) -> Path:
     return out
 
 
-def run_prepare(ws: Workspace, scene_dir: Path, cfg: PrepareConfig, force: bool = False) -> bool:
-    """Import `scene_dir`; returns False when the workspace was already up to date."""
+def run_prepare(ws: Workspace, cfg: PrepareConfig, env: StageEnv, force: bool = False) -> bool:
+    """Import `env.scene_dir`; returns False when the workspace was already up to date."""
+    scene_dir = env.scene_dir
+    if scene_dir is None:
+        raise InputError("prepare needs a scene folder")
     sfm_model = posed_photos(ws, scene_dir, cfg) if scene_dir.is_dir() and detect_format(scene_dir) == "photos" \
         else None
     scene = load_scene_for_prepare(scene_dir, cfg, sfm_model)

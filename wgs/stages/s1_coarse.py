@@ -21,6 +21,7 @@ from ..resume import Checkpointer
 from ..scene.dataset import PreparedScene, composite, load_prepared
 from ..threads import configured_count, map_in_processes
 from ..workspace import StageRun, Workspace
+from . import StageEnv
 from .shared import background_for, initial_splats, member_checkpoint, subbands_hwc
 
 
@@ -38,8 +39,9 @@ def write_coarse_outputs(run: StageRun, scene: PreparedScene, splats: Splats, de
     return per_view
 
 
-def run_coarse(ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: int, force: bool = False) -> bool:
-    return ws.run_stage("coarse", cfg, {"seed": seed}, force, lambda run: train_coarse(run, ws, cfg, device, seed))
+def run_coarse(ws: Workspace, cfg: CoarseConfig, env: StageEnv, force: bool = False) -> bool:
+    return ws.run_stage("coarse", cfg, {"seed": env.seed}, force,
+                        lambda run: train_coarse(run, ws, cfg, env.device, env.seed))
 
 
 def train_model(ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: int, desc: str,

@@ -24,6 +24,7 @@ from ..io.exr import write_subbands
 from ..masking import make_region_masks
 from ..scene.dataset import PreparedScene, composite, load_prepared
 from ..workspace import STAGE_DIRS, StageRun, Workspace
+from . import StageEnv
 from .shared import background_for, initial_splats, subbands_hwc
 
 
@@ -115,8 +116,9 @@ def hf_pairs(ws: Workspace, scene: PreparedScene) -> list[dict[str, str]]:
     return out
 
 
-def run_mask_data(ws: Workspace, cfg: MaskDataConfig, device: torch.device, seed: int, force: bool = False) -> bool:
-    return ws.run_stage("mask_data", cfg, {"seed": seed}, force, lambda run: make_pairs(run, ws, cfg, device, seed))
+def run_mask_data(ws: Workspace, cfg: MaskDataConfig, env: StageEnv, force: bool = False) -> bool:
+    return ws.run_stage("mask_data", cfg, {"seed": env.seed}, force,
+                        lambda run: make_pairs(run, ws, cfg, env.device, env.seed))
 
 
 def make_pairs(run: StageRun, ws: Workspace, cfg: MaskDataConfig, device: torch.device, seed: int) -> str:

@@ -30,6 +30,7 @@ from ..shape.carve import carve, sure_background
 from ..shape.features import hull_channels, predict_object, silhouette_inputs
 from ..shape.hull import HullGrid, save_grid, visual_hull_grid
 from ..workspace import StageRun, Workspace
+from . import StageEnv
 from .shared import background_for, coarse_members, ensemble_repair
 
 
@@ -84,9 +85,9 @@ def silhouette_predictor(scene, cfg: RepairConfig, device: torch.device) -> Silh
     return SilhouettePredictor(model, grid, device)
 
 
-def run_repair(ws: Workspace, cfg: RepairConfig, device: torch.device, seed: int, force: bool = False) -> bool:
-    return ws.run_stage("repair", cfg, {"seed": seed, "silhouette_model": silhouette_fingerprint(cfg)}, force,
-                        lambda run: repair_views(run, ws, cfg, device, seed))
+def run_repair(ws: Workspace, cfg: RepairConfig, env: StageEnv, force: bool = False) -> bool:
+    return ws.run_stage("repair", cfg, {"seed": env.seed, "silhouette_model": silhouette_fingerprint(cfg)}, force,
+                        lambda run: repair_views(run, ws, cfg, env.device, env.seed))
 
 
 def repair_views(run: StageRun, ws: Workspace, cfg: RepairConfig, device: torch.device, seed: int) -> str:
@@ -94,7 +95,7 @@ def repair_views(run: StageRun, ws: Workspace, cfg: RepairConfig, device: torch.
     scene = load_prepared(ws.stage_dir("scene"))
     members = coarse_members(ws, scene, device)
     repairer = load_repairer(ws.stage_dir("finetune"), cfg, device, seed)
-    domain, U = repairer.d_cfg.get("domain", "wavelet"), repairer.U
+    domain, U = repairer.meta.domain, repairer.U
     if cfg.poses == "sphere":
         views = sphere_views(scene.train, cfg.num_views, cfg.band_below, cfg.band_above)
     else:

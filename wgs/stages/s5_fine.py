@@ -18,6 +18,7 @@ from ..scene.camera import Camera
 from ..scene.dataset import Frame, PreparedScene, load_prepared
 from ..shape.hull import load_grid
 from ..workspace import StageRun, Workspace
+from . import StageEnv
 from .shared import background_for, ensemble_repair, initial_splats, workspace_repairer
 
 
@@ -91,8 +92,9 @@ def starting_splats(ws: Workspace, scene: PreparedScene, cfg: FineConfig, seed: 
     return load_checkpoint(ws.stage_dir("coarse") / CKPT, scene.norm)[0], start
 
 
-def run_fine(ws: Workspace, cfg: FineConfig, device: torch.device, seed: int, force: bool = False) -> bool:
-    return ws.run_stage("fine", cfg, {"seed": seed}, force, lambda run: train_fine(run, ws, cfg, device, seed))
+def run_fine(ws: Workspace, cfg: FineConfig, env: StageEnv, force: bool = False) -> bool:
+    return ws.run_stage("fine", cfg, {"seed": env.seed}, force,
+                        lambda run: train_fine(run, ws, cfg, env.device, env.seed))
 
 
 def train_fine(run: StageRun, ws: Workspace, cfg: FineConfig, device: torch.device, seed: int) -> str:

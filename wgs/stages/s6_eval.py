@@ -3,7 +3,6 @@ and the error-against-run-time report."""
 
 from __future__ import annotations
 
-import dataclasses
 import statistics
 import time
 from collections.abc import Callable
@@ -29,7 +28,15 @@ from ..scene.orbit import orbit_frames
 from ..shape.hull import silhouette, visual_hull_grid
 from ..shape.scores import SILHOUETTE_DOC, leave_one_out, mean_scores, silhouette_scores
 from ..workspace import STAGE_DIRS, StageRun, Workspace
-from .shared import background_for, coarse_members, ensemble_repair, initial_splats, workspace_repairer
+from . import StageEnv
+from .shared import (
+    background_for,
+    coarse_members,
+    ensemble_repair,
+    initial_splats,
+    plain_3dgs_config,
+    workspace_repairer,
+)
 
 METRICS_DOC = {
     "psnr": "mean over views of per-view PSNR (dB), images in [0, 1] on the dataset background",
@@ -104,7 +111,7 @@ class RepairGain:
                 "psnr_repaired": statistics.fmean(self.after.values()),
                 "gain_db": statistics.fmean(gains), "gain_std": statistics.pstdev(gains),
                 "views_improved": sum(g > 0 for g in gains), "num_views": len(gains),
-                "prior": self.repairer.d_cfg.get("prior"), "ensemble": len(self.members)}
+                "prior": self.repairer.meta.prior, "ensemble": len(self.members)}
 
 
 def summarise(per: dict[str, dict[str, float]]) -> dict[str, float | None]:
@@ -286,10 +293,7 @@ def train_baseline(run: StageRun, ws: Workspace, scene, times: list[dict[str, An
     # G_c's own training time (the coarse stage also trains the ensemble's other members)
     coarse_s = (ws.manifest("coarse") or {}).get("train_seconds") or next(
         (r["wall_time_s"] for r in times if r["stage"] == "coarse"), budget)
-    scale = max(1.0, budget / max(coarse_s, 1e-6))
-    # the time budget decides; iterations are an upper bound and the schedules follow elapsed time
-    cfg = dataclasses.replace(base, iterations=int(base.iterations * scale * 2), max_seconds=budget,
-                              refine_stop=int(base.refine_stop * scale))
+    cfg = plain_3dgs_config(base, budget, coarse_s)
     probe, names = test_probe(ws, scene, cfg, background_for(scene), device)
     res = train_gaussians(initial_splats(scene, cfg, seed), scene.train, cfg, device, extent=1.0,
                           desc="eval: plain 3DGS baseline", seed=seed, has_masks=scene.has_masks,
@@ -301,11 +305,11 @@ def train_baseline(run: StageRun, ws: Workspace, scene, times: list[dict[str, An
                         "iterations": res.iterations}
 
 
-def run_eval(ws: Workspace, cfg: EvalConfig, device: torch.device, force: bool = False,
-             final: str = "fine", seed: int = 0) -> bool:
-    """Evaluate `final` (fine, or coarse when the repair stages were left out) and G_c."""
-    return ws.run_stage("eval", cfg, {"final": final}, force, lambda run: evaluate(run, ws, cfg, device, final, seed),
-                        requires=("scene", "coarse", final))
+def run_eval(ws: Workspace, cfg: EvalConfig, env: StageEnv, force: bool = False) -> bool:
+    """Evaluate `env.final` (fine, or coarse when the repair stages were left out) and G_c."""
+    return ws.run_stage("eval", cfg, {"final": env.final}, force,
+                        lambda run: evaluate(run, ws, cfg, env.device, env.final, env.seed),
+                        requires=("scene", "coarse", env.final))
 
 
 def evaluate(run: StageRun, ws: Workspace, cfg: EvalConfig, device: torch.device, final: str, seed: int) -> str:

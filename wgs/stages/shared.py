@@ -4,9 +4,11 @@ layers below it, never each other."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 
-from ..config import CKPT, MEMBERS, RepairConfig, TrainConfig
+from ..config import CKPT, MEMBERS, CoarseConfig, RepairConfig, TrainConfig
 from ..errors import InputError
 from ..gaussians.init import hull_points, knn_mean_distance, random_init, visual_hull
 from ..gaussians.splats import Splats, create_splats, load_checkpoint
@@ -34,6 +36,15 @@ def initial_splats(scene: PreparedScene, cfg: TrainConfig, seed: int, hull: Hull
         pts, cols = random_init(cfg.init_points, generator=gen)
     scales = knn_mean_distance(pts, 3).clamp(1e-4, 0.05)
     return create_splats(pts, cols, scales, cfg.sh_degree)
+
+
+def plain_3dgs_config(coarse: CoarseConfig, budget_s: float, coarse_train_s: float) -> CoarseConfig:
+    """Plain 3DGS for a training-time budget (what the time would buy without the repair): the
+    coarse stage's settings for one model, its iteration and densification caps scaled from G_c's
+    own rate with 4x headroom. The time budget decides; the schedules follow its elapsed fraction."""
+    scale = max(1.0, budget_s / max(coarse_train_s, 1e-6))
+    return dataclasses.replace(coarse, iterations=int(coarse.iterations * scale * 4),
+                               refine_stop=int(coarse.refine_stop * scale * 4), max_seconds=budget_s, ensemble=1)
 
 
 def background_for(scene: PreparedScene) -> torch.Tensor:
@@ -85,7 +96,7 @@ def ensemble_repair(members: list[Splats], frame: Frame, background: torch.Tenso
     `first_render`: the first member's render when the caller has it. Returns that render [H, W, 3],
     the reference [H, W, 3], and the corrupted
     (first render) and repaired (reference) subbands as `repair_image` names them."""
-    domain, levels = repairer.d_cfg.get("domain", "wavelet"), repairer.d_cfg.get("levels", 1)
+    domain, levels = repairer.meta.domain, repairer.meta.levels
     n = repairer.symmetries
     fixed = []
     for k, splats in enumerate(members):
