@@ -7,7 +7,7 @@ import torch
 import torch.nn.functional as F
 
 from wgs.lpips import LPIPS, LpipsUnavailable
-from wgs.metrics import ssim, ssim_map
+from wgs.metrics import ssim, ssim_map, ssim_map_fast
 
 
 def ssim_reference(a: np.ndarray, b: np.ndarray) -> float:
@@ -57,12 +57,29 @@ def test_ssim_map_gradcheck(padding):
     assert torch.autograd.gradcheck(lambda a: ssim_map(a, y, padding=padding), (x,))
 
 
+@pytest.mark.parametrize("padding", ["zeros", "reflect"])
+def test_fast_ssim_map_equals_the_autograd_one_and_passes_gradcheck(padding):
+    # the training loss's path: the same map, its hand-written gradient against autograd's
+    g = torch.Generator().manual_seed(2)
+    x = torch.rand(2, 3, 14, 17, generator=g, dtype=torch.float64, requires_grad=True)
+    y = (x.detach() + 0.2 * torch.randn(x.shape, generator=g, dtype=torch.float64)).clamp(0, 1)
+    w = torch.rand(2, 3, 14, 17, generator=g, dtype=torch.float64)
+    ref = ssim_map(x, y, padding=padding, eps=1e-12)
+    fast = ssim_map_fast(x, y, padding=padding, eps=1e-12)
+    torch.testing.assert_close(fast, ref, rtol=0, atol=0)
+    (g_ref,) = torch.autograd.grad((ref * w).sum(), x)
+    (g_fast,) = torch.autograd.grad((fast * w).sum(), x)
+    torch.testing.assert_close(g_fast, g_ref, rtol=1e-10, atol=1e-12)
+    assert torch.autograd.gradcheck(lambda a: ssim_map_fast(a, y, padding=padding, eps=1e-12), (x,))
+
+
 def test_ssim_map_refuses_bad_input():
     x = torch.rand(1, 3, 16, 16)
-    with pytest.raises(ValueError, match="padding"):
-        ssim_map(x, x, padding="circular")
-    with pytest.raises(ValueError, match="one shape"):
-        ssim_map(x, x[..., :8])
+    for fn in (ssim_map, ssim_map_fast):
+        with pytest.raises(ValueError, match="padding"):
+            fn(x, x, padding="circular")
+        with pytest.raises(ValueError, match="one shape"):
+            fn(x, x[..., :8])
 
 
 

@@ -1,4 +1,5 @@
-"""Benchmarks (not tests): `python -m wgs.bench rasterizer|knn|pipeline|batch|contention|sfm` (see --help).
+"""Benchmarks (not tests): `python -m wgs.bench rasterizer|iteration|knn|pipeline|batch|contention|sfm|shape`
+(see --help).
 
 The rasterizer benchmark times our numba fast path and the pure-torch reference in the same run
 on random scenes with realistic footprints (a few px to tens of px), forward and forward+backward,
@@ -310,9 +311,72 @@ def bench_shape(mirror: str, root: str, objects: tuple[str, ...], preset: str, v
             "machine": {"platform": platform.platform(), "threads": torch.get_num_threads()}}
 
 
+PHASES = ("wgs:render", "wgs:loss", "wgs:pseudo_view", "wgs:backward", "wgs:adam", "wgs:finite_check", "wgs:densify")
+INNER = {"wgs:render": ("wgs:project", "wgs:sh", "wgs:raster"),
+         "wgs:backward": ("RasterizeNumbaBackward", "ProjectNumbaBackward")}
+
+
+def bench_iteration(scene: str, root: str, views: int, downscale: int, window: int = 200, seed: int = 0) -> dict:
+    """Where a coarse training iteration's time goes at the scene's real size: the coarse stage's own
+    trainer and settings, profiled (torch.profiler, CPU) over `window` iterations in the middle of
+    G_c's training, by the trainer's phase labels (render = projection + SH + rasterizer forward,
+    loss = L1 + SSIM + mask, backward with the rasterizer's and the projection's own backward,
+    Adam, the finite check, densification); "rest" is the loop's Python and bookkeeping."""
+    from torch.profiler import ProfilerActivity, profile
+
+    from .config import resolve
+    from .gaussians.trainer import train_gaussians
+    from .scene.dataset import load_prepared
+    from .stages import StageEnv, run_stage
+    from .stages.shared import initial_splats
+    from .workspace import Workspace
+
+    ws = Workspace(Path(root) / "iteration")
+    run_stage("scene", ws, resolve("prepare", cli={"views": views, "downscale": downscale}),
+              StageEnv(torch.device("cpu"), seed, scene_dir=Path(scene)))
+    prepared = load_prepared(ws.stage_dir("scene"))
+    cfg = resolve("coarse")
+    total = cfg.iterations
+    start = total // 2
+    cfg.iterations = start + window
+    prof = profile(activities=[ProfilerActivity.CPU])
+    marks: dict[str, float] = {}
+    sizes: list[int] = []
+
+    def on_step(it: int, params) -> None:
+        if it == start:
+            prof.start()
+            marks["t0"] = time.perf_counter()
+        elif it == start + window:
+            marks["t1"] = time.perf_counter()
+            prof.stop()
+        if it > start:
+            sizes.append(int(params["means"].shape[0]))
+
+    torch.manual_seed(seed)
+    train_gaussians(initial_splats(prepared, cfg, seed), prepared.train, cfg, torch.device("cpu"), extent=1.0,
+                    desc="bench iteration", seed=seed, has_masks=prepared.has_masks, on_step=on_step)
+    wall_ms = 1e3 * (marks["t1"] - marks["t0"]) / window
+    totals: dict[str, float] = {}
+    for ev in prof.key_averages():
+        for name in (*PHASES, *(n for inner in INNER.values() for n in inner)):
+            if ev.key == name or (not name.startswith("wgs:") and name in ev.key):
+                totals[name] = max(totals.get(name, 0.0), ev.cpu_time_total / 1e3 / window)
+    rows = {name: round(totals.get(name, 0.0), 3) for name in PHASES}
+    rows["rest (Python, bookkeeping, profiler)"] = round(wall_ms - sum(rows.values()), 3)
+    inner = {name: round(totals.get(name, 0.0), 3) for names in INNER.values() for name in names}
+    img = prepared.train[0]
+    return {"benchmark": "iteration", "scene": scene, "size": [img.width, img.height], "views": len(prepared.train),
+            "iterations": f"{start + 1}..{start + window} of G_c's {total}",
+            "gaussians": [min(sizes), max(sizes)], "ms_per_iteration_profiled": round(wall_ms, 3),
+            "phases_ms": rows, "inside_ms": inner, "threads": torch.get_num_threads(),
+            "machine": {"platform": platform.platform(), "cpus": os.cpu_count()}}
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(prog="python -m wgs.bench")
-    ap.add_argument("which", choices=["rasterizer", "pipeline", "batch", "contention", "knn", "sfm", "shape"])
+    ap.add_argument("which", choices=["rasterizer", "iteration", "pipeline", "batch", "contention", "knn", "sfm",
+                                      "shape"])
     ap.add_argument("--json", action="store_true", help="print JSON instead of a table")
     ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--ref-repeats", type=int, default=3)
@@ -329,6 +393,13 @@ def main(argv: list[str] | None = None) -> None:
                     help="shape: folder of fetched snapshots (owner+name/repo)")
     ap.add_argument("--objects", default=",".join(SHAPE_OBJECTS), help="shape: held-out meshes by corpus name")
     a = ap.parse_args(argv)
+    if a.which == "iteration":
+        if not Path(a.scene).is_dir():
+            print(f"scene {a.scene} not found: skipped")
+            return
+        json.dump(bench_iteration(a.scene, a.root, a.views, a.downscale), sys.stdout, indent=2)
+        print()
+        return
     if a.which == "shape":
         res = bench_shape(a.mirror, a.root, tuple(a.objects.split(",")), a.preset or "fast", a.views)
         Path(a.root).mkdir(exist_ok=True)

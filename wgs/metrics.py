@@ -44,20 +44,75 @@ def ssim_map(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 
                          f"{tuple(y.shape)}")
     if padding not in ("zeros", "reflect"):
         raise ValueError(f"ssim_map padding must be 'zeros' or 'reflect', got {padding!r}")
-    c, k, pad = x.shape[1], 5 * x.shape[1], window // 2
+    c = x.shape[1]
     g = gaussian_window(window, sigma, x.dtype).to(x.device)
-    moments = torch.cat([x, y, x * x, y * y, x * y], 1)
-    if padding == "reflect":
-        moments, pads = F.pad(moments, (pad, pad, pad, pad), mode="reflect"), ((0, 0), (0, 0))
-    else:
-        pads = ((0, pad), (pad, 0))
-    moments = F.conv2d(moments, g.view(1, 1, 1, -1).expand(k, 1, 1, window), padding=pads[0], groups=k)
-    moments = F.conv2d(moments, g.view(1, 1, -1, 1).expand(k, 1, window, 1), padding=pads[1], groups=k)
-    mu_x, mu_y, xx, yy, xy = moments.split(c, 1)
+    mu_x, mu_y, xx, yy, xy = blur(torch.cat([x, y, x * x, y * y, x * y], 1), g, padding).split(c, 1)
     mu_xx, mu_yy, mu_xy = mu_x * mu_x, mu_y * mu_y, mu_x * mu_y
     num = (2 * mu_xy + SSIM_C1) * (2 * (xy - mu_xy) + SSIM_C2)
     den = (mu_xx + mu_yy + SSIM_C1) * ((xx - mu_xx) + (yy - mu_yy) + SSIM_C2)
     return num / (den + eps)
+
+
+def blur(z: torch.Tensor, g: torch.Tensor, padding: str) -> torch.Tensor:
+    """SSIM's separable Gaussian (1D window g) over each channel of [B, K, H, W], same size out:
+    reflect-padded, or zero-padded ("zeros")."""
+    k, window, pad = z.shape[1], g.numel(), g.numel() // 2
+    if padding == "reflect":
+        z, pads = F.pad(z, (pad, pad, pad, pad), mode="reflect"), ((0, 0), (0, 0))
+    else:
+        pads = ((0, pad), (pad, 0))
+    z = F.conv2d(z, g.view(1, 1, 1, -1).expand(k, 1, 1, window), padding=pads[0], groups=k)
+    return F.conv2d(z, g.view(1, 1, -1, 1).expand(k, 1, window, 1), padding=pads[1], groups=k)
+
+
+def blur_adjoint(d: torch.Tensor, g: torch.Tensor, padding: str) -> torch.Tensor:
+    """The adjoint of `blur` (g symmetric): what a gradient [B, K, H, W] of its output is for its input."""
+    if padding != "reflect":  # a zero-padded same-size filter with a symmetric window is its own adjoint
+        return blur(d, g, "zeros")
+    k, window, pad = d.shape[1], g.numel(), g.numel() // 2
+    full = F.conv2d(d, g.view(1, 1, -1, 1).expand(k, 1, window, 1), padding=(2 * pad, 0), groups=k)
+    full = F.conv2d(full, g.view(1, 1, 1, -1).expand(k, 1, 1, window), padding=(0, 2 * pad), groups=k)
+    return torch.ops.aten.reflection_pad2d_backward(full, d, [pad, pad, pad, pad])
+
+
+class SSIMMapFast(torch.autograd.Function):
+    """`ssim_map` against a constant y with a hand-written backward: the five local moments are
+    filtered once without autograd's graph, and the gradient filters three maps instead of
+    back-propagating through all five (`ssim_map` is the reference; tests compare both)."""
+
+    @staticmethod
+    def forward(ctx, x, y, window: int, sigma: float, padding: str, eps: float):
+        c = x.shape[1]
+        g = gaussian_window(window, sigma, x.dtype).to(x.device)
+        mu_x, mu_y, xx, yy, xy = blur(torch.cat([x, y, x * x, y * y, x * y], 1), g, padding).split(c, 1)
+        a1, a2 = 2 * mu_x * mu_y + SSIM_C1, 2 * (xy - mu_x * mu_y) + SSIM_C2
+        b1, b2 = mu_x * mu_x + mu_y * mu_y + SSIM_C1, (xx - mu_x * mu_x) + (yy - mu_y * mu_y) + SSIM_C2
+        den = b1 * b2 + eps
+        out = a1 * a2 / den
+        ctx.save_for_backward(x, y, mu_x, mu_y, a1, a2, b1, b2, den, out, g)
+        ctx.padding = padding
+        return out
+
+    @staticmethod
+    def backward(ctx, grad):
+        x, y, mu_x, mu_y, a1, a2, b1, b2, den, out, g = ctx.saved_tensors
+        q = grad / den
+        d_a1, d_a2, d_b1, d_b2 = q * a2, q * a1, -q * out * b2, -q * out * b1
+        d_mu = 2 * (mu_y * (d_a1 - d_a2) + mu_x * (d_b1 - d_b2))
+        back = blur_adjoint(torch.cat([d_mu, d_b2, 2 * d_a2], 1), g, ctx.padding)
+        a_mu, a_xx, a_xy = back.split(x.shape[1], 1)
+        return a_mu + 2 * x * a_xx + y * a_xy, None, None, None, None, None
+
+
+def ssim_map_fast(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5, padding: str = "zeros",
+                  eps: float = 0.0) -> torch.Tensor:
+    """`ssim_map` for a loss: differentiable in x only (y is the reference)."""
+    if x.shape != y.shape or x.dim() != 4:
+        raise ValueError(f"ssim_map expects two [B, C, H, W] batches of one shape, got {tuple(x.shape)}, "
+                         f"{tuple(y.shape)}")
+    if padding not in ("zeros", "reflect"):
+        raise ValueError(f"ssim_map padding must be 'zeros' or 'reflect', got {padding!r}")
+    return SSIMMapFast.apply(x, y.detach(), window, sigma, padding, eps)
 
 
 def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5) -> float:

@@ -10,6 +10,7 @@ import functools
 from typing import Any
 
 import torch
+from torch.profiler import record_function
 
 from ..scene.camera import camera_center
 from .project import project_gaussians
@@ -65,12 +66,14 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
     # the numba projection differentiates means, quats and scales only; a camera being optimised
     # takes the reference
     fast_proj = backend == "numba" and not (viewmat.requires_grad or K.requires_grad)
-    proj = (project_gaussians_numba if fast_proj else project_gaussians)(means, quats, scales, viewmat, K, width,
-                                                                        height, near=near)
+    with record_function("wgs:project"):
+        proj = (project_gaussians_numba if fast_proj else project_gaussians)(means, quats, scales, viewmat, K, width,
+                                                                            height, near=near)
     if colors.dim() == 3:
-        deg = sh_degree_of(colors.shape[1]) if sh_degree is None else sh_degree
-        campos = camera_center(viewmat)
-        rgb_g = torch.clamp_min(eval_sh(colors, means - campos, deg) + 0.5, 0.0)
+        with record_function("wgs:sh"):
+            deg = sh_degree_of(colors.shape[1]) if sh_degree is None else sh_degree
+            campos = camera_center(viewmat)
+            rgb_g = torch.clamp_min(eval_sh(colors, means - campos, deg) + 0.5, 0.0)
     else:
         rgb_g = colors
     feats, bg = rgb_g, background.to(means.dtype)
@@ -81,8 +84,9 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
     if means2d.requires_grad:
         means2d.retain_grad()
     raster = _rasterize_numba if backend == "numba" else rasterize_pixels_torch
-    out, alpha = raster(means2d, proj.conics, feats, opacities, proj.depths, proj.extents, proj.visible,
-                        width, height, bg)
+    with record_function("wgs:raster"):
+        out, alpha = raster(means2d, proj.conics, feats, opacities, proj.depths, proj.extents, proj.visible,
+                            width, height, bg)
     meta: dict[str, Any] = {"means2d": means2d, "radii": proj.extents.max(dim=1).values, "visible": proj.visible,
                             "depths": proj.depths, "width": width, "height": height}
     if render_depth:

@@ -14,10 +14,11 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import torch
+from torch.profiler import record_function
 
 from ..config import TrainConfig
 from ..errors import WgsError
-from ..metrics import ssim_map
+from ..metrics import ssim_map_fast
 from ..progress import progress_bar
 from ..resume import Checkpointer, check_interrupt, deferred_sigint, rng_state, set_rng_state
 from ..scene.dataset import Frame
@@ -82,7 +83,7 @@ def photometric_loss(render: torch.Tensor, target: torch.Tensor, ssim_weight: fl
                      weight: torch.Tensor | None = None) -> torch.Tensor:
     """0.8·L1 + 0.2·(1 - SSIM) on [H, W, 3] images, optionally weighted per pixel by [H, W]."""
     l1 = (render - target).abs().mean(-1)
-    ssim = ssim_map(render.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None], padding="reflect", eps=1e-12)
+    ssim = ssim_map_fast(render.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None], padding="reflect", eps=1e-12)
     per_px = (1 - ssim_weight) * l1 + ssim_weight * (1 - ssim[0].mean(0))
     if weight is None:
         return per_px.mean()
@@ -176,30 +177,37 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
                 bg = torch.ones(3, device=device) if masks[i] is not None else torch.zeros(3, device=device)
             target = imgs[i] if masks[i] is None else imgs[i] * masks[i][..., None] + bg * (1 - masks[i][..., None])
             deg = min(max_deg, (sched - 1) // max(cfg.sh_increase_every, 1))
-            means, quats, scales, opac, sh = activate(params)
-            rgb, alpha, meta = rasterize(means, quats, scales, opac, sh[:, : (deg + 1) ** 2], viewmat, K, w, h, bg)
-            weight = pixel_weights(i, it) if pixel_weights is not None else None
-            loss = photometric_loss(rgb, target, cfg.ssim_weight, weight)
-            if masks[i] is not None and cfg.mask_weight > 0:
-                a_err = (alpha[..., 0] - masks[i]).abs()
-                loss = loss + cfg.mask_weight * (a_err.mean() if weight is None else
-                                                 (a_err * weight).sum() / weight.sum().clamp_min(1.0))
+            with record_function("wgs:render"):
+                means, quats, scales, opac, sh = activate(params)
+                rgb, alpha, meta = rasterize(means, quats, scales, opac, sh[:, : (deg + 1) ** 2], viewmat, K, w, h,
+                                             bg)
+            with record_function("wgs:loss"):
+                weight = pixel_weights(i, it) if pixel_weights is not None else None
+                loss = photometric_loss(rgb, target, cfg.ssim_weight, weight)
+                if masks[i] is not None and cfg.mask_weight > 0:
+                    a_err = (alpha[..., 0] - masks[i]).abs()
+                    loss = loss + cfg.mask_weight * (a_err.mean() if weight is None else
+                                                     (a_err * weight).sum() / weight.sum().clamp_min(1.0))
             if pseudo is not None and it % pseudo.every == 0 and pseudo.schedule(sched) > 0:
-                loss = loss + pseudo_loss(params, pseudo, it, sched, deg, device, cfg)
-            loss.backward()
+                with record_function("wgs:pseudo_view"):
+                    loss = loss + pseudo_loss(params, pseudo, it, sched, deg, device, cfg)
+            with record_function("wgs:backward"):
+                loss.backward()
             if not torch.isfinite(loss):
                 raise WgsError(f"{desc}: loss became non-finite at iteration {it}; nothing was saved")
-            strategy.accumulate(state, meta)
-            for name, opt in optimizers.items():
-                if name == "means":
-                    opt.param_groups[0]["lr"] = cfg.lr_means * extent * decay ** min(sched, cfg.iterations)
-                opt.step()
-                opt.zero_grad(set_to_none=True)
-            bad = [k for k, p in params.items() if not torch.isfinite(p).all()]
+            with record_function("wgs:adam"):
+                for name, opt in optimizers.items():
+                    if name == "means":
+                        opt.param_groups[0]["lr"] = cfg.lr_means * extent * decay ** min(sched, cfg.iterations)
+                    opt.step()
+                    opt.zero_grad(set_to_none=True)
+            with record_function("wgs:finite_check"):
+                bad = [k for k, p in params.items() if not torch.isfinite(p).all()]
             if bad:
                 raise WgsError(f"{desc}: parameter group(s) {', '.join(bad)} became non-finite at iteration {it}; "
                                "nothing was saved")
-            with torch.no_grad():
+            with torch.no_grad(), record_function("wgs:densify"):
+                strategy.accumulate(state, meta)
                 strategy.step(params, optimizers, state, sched, prev_sched)
                 if (cfg.floater_every > 0 and prev_sched // cfg.floater_every < sched // cfg.floater_every
                         and sched < cfg.refine_stop
