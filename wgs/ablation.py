@@ -19,7 +19,7 @@ from typing import Any
 from .config import METHOD, REGISTRY, RESULTS, stages_through
 from .errors import InputError
 from .io import atomic_write_bytes, atomic_write_json, read_json
-from .progress import log
+from .progress import fmt, log
 from .stages.shared import plain_3dgs_config
 from .workspace import STAGE_DIRS, Workspace
 
@@ -183,11 +183,8 @@ def pareto(rows: list[dict[str, Any]]) -> set[str]:
 
 
 def write_outputs(root: Path, agg: list[dict[str, Any]], records: list[dict[str, Any]]) -> None:
-    def f(v, nd=3):
-        return "n/a" if v is None else f"{v:.{nd}f}"
-
     def pm(r, k, nd):
-        return f(r[k], nd) + (f" ± {f(r[k + '_std'], nd)}" if r["repeats"] > 1 and r[k] is not None else "")
+        return fmt(r[k], nd) + (f" ± {fmt(r[k + '_std'], nd)}" if r["repeats"] > 1 and r[k] is not None else "")
 
     tick = {True: "✓", False: ""}
     stages = [s for s in STAGE_DIRS if s != "eval" and any(s in r["stage_times_s"] for r in agg)]
@@ -203,7 +200,7 @@ def write_outputs(root: Path, agg: list[dict[str, Any]], records: list[dict[str,
                  tick[bool(r["use_u"]) and st is not None] + u_note(r), tick[r.get("prior") not in (None, "none")]]
         lines.append(f"| {r['row']} | " + " | ".join(cells) + f" | {pm(r, 'psnr', 2)} | {pm(r, 'ssim', 3)} | "
                      f"{pm(r, 'lpips', 3)} | {pm(r, 'repair_gain_db', 2)} | {pm(r, 'time_s', 1)} | "
-                     + " | ".join(f(r["stage_times_s"].get(s), 1) for s in stages) + " |")
+                     + " | ".join(fmt(r["stage_times_s"].get(s), 1) for s in stages) + " |")
     by = {r["row"]: r for r in agg}
     if "loo-rgb" in by and "orm-wavelet-u" in by:
         a, b = by["orm-wavelet-u"], by["loo-rgb"]

@@ -29,7 +29,7 @@ import click
 from .config import RESULTS
 from .errors import InputError
 from .io import atomic_write_bytes, atomic_write_json
-from .progress import log
+from .progress import fmt, log
 from .threads import COUNT_VARS, ENV, available_cores
 from .workspace import STAGE_DIRS
 
@@ -307,9 +307,6 @@ def print_summary(summary: dict[str, Any]) -> None:
 
     from .progress import results
 
-    def fmt(v, nd=2):
-        return "" if v is None else f"{v:.{nd}f}"
-
     rows, m, sd = summary["scenes"], summary["mean"], summary["std"]
     # (header, row key, decimals); LPIPS and error columns only when some scene has them
     cols = [("PSNR", "psnr", 2), ("SSIM", "ssim", 3), ("LPIPS", "lpips", 3), ("PSNR G_c", "coarse_psnr", 2),
@@ -322,10 +319,10 @@ def print_summary(summary: dict[str, Any]) -> None:
         table.add_column(c, overflow="fold")
     for r in rows:
         status = r["status"] + (f" ({r['this_run']})" if r.get("this_run") == "skipped" else "")
-        table.add_row(r["scene"], status, *(fmt(r.get(k), nd) for _, k, nd in cols),
+        table.add_row(r["scene"], status, *(fmt(r.get(k), nd, missing="") for _, k, nd in cols),
                       *([(r["error"] or "")[:120]] if with_errors else []))
     table.add_row("mean ± std", f"{summary['counts']['done']} done",
-                  *(f"{fmt(m[k], nd)} ± {fmt(sd[k], nd)}" if m.get(k) is not None else "" for _, k, nd in cols),
+                  *(f"{fmt(m[k], nd, '')} ± {fmt(sd[k], nd, '')}" if m.get(k) is not None else "" for _, k, nd in cols),
                   *([""] if with_errors else []))
     results.print(table)
 

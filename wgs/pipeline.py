@@ -14,7 +14,7 @@ import torch
 
 from .config import METHOD, REGISTRY, RESULTS
 from .io import read_json
-from .progress import log, results
+from .progress import fmt, log, results
 from .workspace import Workspace
 
 MANY_VIEWS = 12  # from this many training views on, diffusion repair is left out by default
@@ -86,10 +86,7 @@ def print_summary(ws: Workspace, outcomes: list[StageOutcome]) -> None:
         r = read_json(res_path)
         c = r["coarse"]
 
-        def f(v, nd=3):
-            return "n/a" if v is None else f"{v:.{nd}f}"
-
-        results.print(f"test views: {r['num_views']}   PSNR {f(c['psnr'], 2)} -> {f(r['psnr'], 2)} dB   "
-                      f"SSIM {f(c['ssim'])} -> {f(r['ssim'])}   LPIPS {f(c['lpips'])} -> {f(r['lpips'])}   "
+        results.print(f"test views: {r['num_views']}   PSNR {fmt(c['psnr'], 2)} -> {fmt(r['psnr'], 2)} dB   "
+                      f"SSIM {fmt(c['ssim'])} -> {fmt(r['ssim'])}   LPIPS {fmt(c['lpips'])} -> {fmt(r['lpips'])}   "
                       f"(coarse -> final)")
         results.print(f"report: {ws.stage_dir('eval') / 'report.md'}")

@@ -1,4 +1,5 @@
-"""Console output (rich): one console on stderr, quiet mode, and a training progress bar."""
+"""Console output (rich): one console on stderr, quiet mode, a training progress bar, and the one
+formatter of numbers in tables and reports."""
 
 from __future__ import annotations
 
@@ -11,6 +12,11 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 console = Console(stderr=True, highlight=False)  # progress and logs
 results = Console(highlight=False)  # what a command was asked to show (stdout, never silenced)
 _quiet = False
+
+
+def fmt(v: float | None, nd: int = 3, missing: str = "n/a") -> str:
+    """A number with `nd` decimals for tables and reports; `missing` where there is none."""
+    return missing if v is None else f"{v:.{nd}f}"
 
 
 def set_quiet(q: bool) -> None:

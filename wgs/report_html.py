@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from .io import atomic_write_bytes
+from .progress import fmt
 
 STYLE = """body{font:14px system-ui,sans-serif;margin:2em auto;max-width:1100px;color:#222}
 table{border-collapse:collapse;margin:1em 0}td,th{border:1px solid #ccc;padding:3px 8px;text-align:right}
@@ -56,10 +57,6 @@ def _table(header: list[str], rows: list[list[str]]) -> str:
     return f"<table><tr>{head}</tr>{body}</table>"
 
 
-def _fmt(x: Any, digits: int = 3) -> str:
-    return "n/a" if x is None else f"{x:.{digits}f}"
-
-
 def write_report_html(path: Path, *, title: str, times: list[dict[str, Any]], coarse: dict, fine: dict,
                       per_fine: dict[str, dict[str, float]], per_coarse: dict[str, dict[str, float]],
                       sheets: list[tuple[str, str, Path]], plot: Path, contact_sheet: Path | None,
@@ -73,7 +70,7 @@ def write_report_html(path: Path, *, title: str, times: list[dict[str, Any]], co
     for r in times:
         q = coarse if r["stage"] == "coarse" else fine if r["stage"] == "fine" else None
         rows.append([r["stage"], f"{r['wall_time_s']:.1f}", f"{r['cumulative_s']:.1f}",
-                     _fmt(q["psnr"], 2) if q else "", _fmt(q["ssim"]) if q else "", _fmt(q["lpips"]) if q else ""])
+                     fmt(q["psnr"], 2) if q else "", fmt(q["ssim"]) if q else "", fmt(q["lpips"]) if q else ""])
     parts += ["<h2>Summary</h2>", _table(["stage", "wall time (s)", "cumulative (s)", "PSNR", "SSIM", "LPIPS"], rows)]
     parts += [f"<p class='note'>{html.escape(n)}</p>" for n in notes]
     if turntable is not None and (uri := png_data_uri(turntable)) is not None:
@@ -84,7 +81,7 @@ def write_report_html(path: Path, *, title: str, times: list[dict[str, Any]], co
         parts.append("<h2>Worst and best test views</h2><p class='note'>render | ground truth | error x 4</p>")
         for label, name, p in sheets:
             if (uri := png_data_uri(p)) is not None:
-                parts.append(f"<h3>{label}: {html.escape(name)} ({_fmt(per_fine['psnr'].get(name), 2)} dB)</h3>"
+                parts.append(f"<h3>{label}: {html.escape(name)} ({fmt(per_fine['psnr'].get(name), 2)} dB)</h3>"
                              f"<img src='{uri}' alt='{html.escape(name)}'>")
     if outlines:
         parts.append("<h2>Silhouettes, worst first</h2><p class='note'>final model's render; red: area it has "
@@ -94,9 +91,9 @@ def write_report_html(path: Path, *, title: str, times: list[dict[str, Any]], co
                 parts.append(f"<h3>{html.escape(name)} ({label})</h3><img src='{uri}' alt='{html.escape(name)}'>")
     names = sorted(per_fine["psnr"], key=per_fine["psnr"].get)
     extra = [k for k in ("lpips", "silhouette_iou") if k in per_fine]
-    rows = [[n, _fmt(per_fine["psnr"][n], 2), _fmt(per_coarse.get("psnr", {}).get(n), 2),
-             _fmt(per_fine["psnr"][n] - per_coarse["psnr"][n], 2) if n in per_coarse.get("psnr", {}) else "",
-             _fmt(per_fine["ssim"][n])] + [_fmt(per_fine[k].get(n)) for k in extra] for n in names]
+    rows = [[n, fmt(per_fine["psnr"][n], 2), fmt(per_coarse.get("psnr", {}).get(n), 2),
+             fmt(per_fine["psnr"][n] - per_coarse["psnr"][n], 2) if n in per_coarse.get("psnr", {}) else "",
+             fmt(per_fine["ssim"][n])] + [fmt(per_fine[k].get(n)) for k in extra] for n in names]
     parts += ["<h2>Per view, worst first</h2>", "<div class='scroll'>",
               _table(["view", "PSNR", "coarse PSNR", "gain", "SSIM"]
                      + [{"lpips": "LPIPS", "silhouette_iou": "silhouette IoU"}[k] for k in extra], rows),

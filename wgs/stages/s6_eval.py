@@ -21,7 +21,7 @@ from ..io import atomic_write_bytes, atomic_write_json
 from ..io.images import write_gif, write_png
 from ..lpips import LPIPS, LpipsUnavailable
 from ..metrics import psnr, ssim
-from ..progress import log, progress_bar
+from ..progress import fmt, log, progress_bar
 from ..report_html import outline_sheet
 from ..scene.dataset import Frame, composite, load_prepared
 from ..scene.orbit import orbit_frames
@@ -160,10 +160,6 @@ def stage_times(ws: Workspace) -> list[dict[str, Any]]:
         rows.append({"stage": st, "wall_time_s": m.get("wall_time_s", 0.0), "cumulative_s": round(cum, 2),
                      "peak_memory_mb": m.get("peak_memory_mb")})
     return rows
-
-
-def fmt(v: float | None, nd: int = 3) -> str:
-    return "n/a" if v is None else f"{v:.{nd}f}"
 
 
 def write_report(run: StageRun, times: list[dict[str, Any]], coarse: dict, fine: dict, eval_s: float,
