@@ -1,4 +1,4 @@
-"""The method helps: on the session's tiny scene (4 views at 64 px, the TINY budgets) G_f beats G_c,
+"""The method helps: on the test suite's tiny scene (4 views at 64 px, the TINY budgets) G_f beats G_c,
 and the gain comes from the repair: the same stages with a repair that returns its input, or adds
 noise, lose it. Measured (wgs 0.1.0, 2026-11-25, seeds 0-2): G_f - G_c = +0.42 / +0.61 / +0.59 dB
 with the repair, +0.02 with an identity repair, -0.03 with noise of sigma 0.3."""
