@@ -35,7 +35,7 @@ demo: $(VENV)/.base examples/scene/transforms_train.json
 	@cat $(DEMO_WS)/6_eval/report.md
 
 test: $(VENV)/.installed
-	$(BIN)/python -m pytest -q --durations=12 tests
+	$(BIN)/python -m pytest -q -n auto --durations=12 tests
 
 bench: $(VENV)/.installed
 	$(BIN)/python -m wgs.bench rasterizer --json

@@ -2,8 +2,11 @@
 
 The object (a few textured ellipsoids, different per seed) is ray-cast analytically, not by the
 Gaussian rasterizer, so it is an independent reference. RGBA images: alpha is the object mask.
+With `--room` the object stands in a room instead (a striped table under it, a patterned wall
+around it, each view lit differently): RGB photos without masks, the true masks in `true_masks/`
+(what automatic masking is measured against).
 
-    python examples/make_scene.py OUT_DIR [--seed S] [--size PX] [--train 4] [--test 16]
+    python examples/make_scene.py OUT_DIR [--seed S] [--size PX] [--train 4] [--test 16] [--room]
 """
 
 from __future__ import annotations
@@ -55,8 +58,39 @@ def look_at_c2w(eye: np.ndarray) -> np.ndarray:
     return m
 
 
-def render(parts: list[dict], c2w: np.ndarray, size: int, ss: int = 2) -> np.ndarray:
-    """Ray-cast [size, size, 4] straight-alpha RGBA, supersampled ss x ss (premultiplied average)."""
+TABLE_Z = -1.0  # the table's top, under the object (room scenes)
+WALL_RADIUS = 6.0  # a cylindrical wall around the table (room scenes)
+
+
+def room(o: np.ndarray, d: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """What the rays [..., 3] from `o` see of the room: a wood-striped table top (z = TABLE_Z, |x|,
+    |y| < 2.5), else a wall of flowers-like blobs on a pale ground, else a grey floor."""
+    out = np.empty(d.shape)
+    t_tab = np.where(d[..., 2] < -1e-6, (TABLE_Z - o[2]) / np.minimum(d[..., 2], -1e-6), np.inf)
+    p = o + np.where(np.isfinite(t_tab), t_tab, 0.0)[..., None] * d
+    on_table = np.isfinite(t_tab) & (np.abs(p[..., 0]) < 2.5) & (np.abs(p[..., 1]) < 2.5)
+    grain = 0.5 + 0.5 * np.sin(9.0 * p[..., 0] + 2.0 * np.sin(3.0 * p[..., 1]))
+    wood = np.array([0.45, 0.28, 0.14]) + grain[..., None] * np.array([0.25, 0.17, 0.08])
+    # the wall: the cylinder x² + y² = R² hit from inside
+    a = d[..., 0] ** 2 + d[..., 1] ** 2
+    b = 2 * (o[0] * d[..., 0] + o[1] * d[..., 1])
+    c = o[0] ** 2 + o[1] ** 2 - WALL_RADIUS ** 2
+    t_wall = (-b + np.sqrt(np.maximum(b * b - 4 * a * c, 0))) / np.maximum(2 * a, 1e-9)
+    q = o + t_wall[..., None] * d
+    ang = np.arctan2(q[..., 1], q[..., 0])
+    blobs = np.sin(7 * ang + rng.uniform(0, 6)) * np.sin(2.5 * q[..., 2] + rng.uniform(0, 6)) > 0.55
+    wall = np.where(blobs[..., None], np.array([0.85, 0.35, 0.45]), np.array([0.93, 0.9, 0.82]))
+    floor = np.array([0.5, 0.5, 0.52])
+    out[:] = np.where((q[..., 2] > TABLE_Z - 2.0)[..., None], wall, floor)
+    out[on_table] = wood[on_table]
+    return out
+
+
+def render(parts: list[dict], c2w: np.ndarray, size: int, ss: int = 2, background: np.random.Generator | None = None
+           ) -> np.ndarray:
+    """Ray-cast [size, size, 4] straight-alpha RGBA, supersampled ss x ss (premultiplied average);
+    with a `background` generator, opaque RGBA of the object in the room (`room`) under a light of
+    random strength and tint."""
     n = size * ss
     f = 0.5 * n / math.tan(0.5 * FOV_X)
     ij = (np.arange(n) + 0.5 - n / 2) / f
@@ -94,6 +128,11 @@ def render(parts: list[dict], c2w: np.ndarray, size: int, ss: int = 2) -> np.nda
         rgb = np.where(closer[..., None], albedo * shade, rgb)
         t_best = np.where(closer, t, t_best)
     alpha = np.isfinite(t_best).astype(np.float64)
+    if background is not None:
+        light = background.uniform(0.7, 1.15) * background.uniform(0.85, 1.0, 3)
+        rgb = np.clip(np.where(alpha[..., None] > 0, rgb, room(o, d, background)) * light, 0, 1)
+        rgb = rgb.reshape(size, ss, size, ss, 3).mean(axis=(1, 3))
+        return np.concatenate([rgb, alpha.reshape(size, ss, size, ss).mean(axis=(1, 3))[..., None]], -1)
     rgba = np.concatenate([rgb * alpha[..., None], alpha[..., None]], -1)
     rgba = rgba.reshape(size, ss, size, ss, 4).mean(axis=(1, 3))
     a = rgba[..., 3:]
@@ -110,7 +149,8 @@ def camera_positions(n: int, rng: np.random.Generator, train: bool) -> list[np.n
     return out
 
 
-def make_scene(out: Path, seed: int = 0, size: int = 128, n_train: int = 4, n_test: int = 16) -> Path:
+def make_scene(out: Path, seed: int = 0, size: int = 128, n_train: int = 4, n_test: int = 16,
+               room: bool = False) -> Path:
     rng = np.random.default_rng(seed)
     parts = make_object(rng)
     out.mkdir(parents=True, exist_ok=True)
@@ -118,7 +158,11 @@ def make_scene(out: Path, seed: int = 0, size: int = 128, n_train: int = 4, n_te
         frames = []
         for i, eye in enumerate(camera_positions(n, rng, split == "train")):
             c2w = look_at_c2w(eye)
-            write_png(out / split / f"r_{i}.png", render(parts, c2w, size).astype(np.float32))
+            img = render(parts, c2w, size, background=rng if room else None).astype(np.float32)
+            if room:  # a photo without a mask, and the true mask apart
+                write_png(out / "true_masks" / f"r_{i}_{split}.png", img[..., 3])
+                img = img[..., :3]
+            write_png(out / split / f"r_{i}.png", img)
             frames.append({"file_path": f"./{split}/r_{i}", "transform_matrix": c2w.tolist()})
         (out / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": FOV_X, "frames": frames}, indent=2))
     return out
@@ -131,8 +175,9 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--train", type=int, default=4)
     ap.add_argument("--test", type=int, default=16)
+    ap.add_argument("--room", action="store_true", help="the object in a room, photos without masks")
     a = ap.parse_args()
-    make_scene(a.out, a.seed, a.size, a.train, a.test)
+    make_scene(a.out, a.seed, a.size, a.train, a.test, a.room)
     print(f"wrote {a.out} (seed {a.seed}, {a.size}x{a.size}, {a.train} train + {a.test} test views)")
 
 

@@ -18,8 +18,16 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "examples"))
 LEGO = ROOT.parent / "shared" / "data" / "lego"
 # a fixed thread count: the tests compare reruns bit for bit, and sums depend on the thread count
-# (wgs otherwise adapts it to other processes' load, see wgs/threads.py)
-os.environ.setdefault("WGS_THREADS", str(len(os.sched_getaffinity(0))))
+# (wgs otherwise adapts it to other processes' load, see wgs/threads.py); under pytest-xdist
+# (`make test` runs one worker per core) each worker takes one core
+if os.environ.get("PYTEST_XDIST_WORKER"):  # a worker inherits the controller's settings: replace them
+    from wgs.threads import COUNT_VARS
+
+    share = str(max(1, len(os.sched_getaffinity(0)) // int(os.environ["PYTEST_XDIST_WORKER_COUNT"])))
+    for key in ("WGS_THREADS", *COUNT_VARS):
+        os.environ[key] = share
+else:
+    os.environ.setdefault("WGS_THREADS", str(len(os.sched_getaffinity(0))))
 # No LPIPS weights in the tests, whatever this machine holds (tests that want them bring their own):
 # results then say "lpips": null and why, the same everywhere.
 os.environ["TORCH_HOME"] = tempfile.mkdtemp(prefix="wgs-tests-torch-home-")

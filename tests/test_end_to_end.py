@@ -106,18 +106,19 @@ def test_render_defaults_to_the_newest_model(tiny):
         assert gif.n_frames == 3 and gif.size == (64, 64)
 
 
-def test_eval_baseline_plain_3dgs_for_the_same_time(tiny, tmp_path):
+def test_baseline_plain_3dgs_for_the_same_time(tiny, tmp_path):
     _, cfg, ws0, _ = tiny
     ws = tmp_path / "ws"
     shutil.copytree(ws0.root, ws)
-    res = CliRunner().invoke(cli, ["-q", "--config", str(cfg), "-w", str(ws), "eval", "--baseline"],
-                             catch_exceptions=False)
-    assert res.exit_code == 0, res.output
+    for command in ("baseline", "eval"):  # the baseline stage makes eval stale: it scores the baseline too
+        res = CliRunner().invoke(cli, ["-q", "--config", str(cfg), "-w", str(ws), command], catch_exceptions=False)
+        assert res.exit_code == 0, res.output
+    assert Workspace(ws).manifest("eval")["upstream"]["baseline"] == Workspace(ws).manifest("baseline")["fingerprint"]
     out = json.loads((ws / "6_eval/results.json").read_text())
     b = out["baseline_3dgs"]
     assert math.isfinite(b["psnr"]) and b["budget_s"] > 0 and b["iterations"] > 0
     assert b["train_seconds"] <= b["budget_s"] + 5.0
-    curve = json.loads((ws / "6_eval/baseline/curve.json").read_text())
+    curve = json.loads(Workspace(ws).output("baseline", "curve").read_text())
     assert curve["points"][0]["iteration"] == 0 and len(curve["points"]) >= 2
     assert "Plain 3DGS for the same training time" in (ws / "6_eval/report.html").read_text()
     # the plot's curves, also in results.json: coarse, fine and the baseline on one time axis
@@ -178,8 +179,8 @@ def test_left_out_without_masks_and_test_views(tiny, tmp_path):
     for p in d.rglob("*.png"):
         write_png(p, read_image(p)[..., :3])  # RGB only: no alpha, so no masks
     (d / "transforms_test.json").unlink()
-    res = CliRunner().invoke(cli, ["--config", str(cfg), "-w", str(tmp_path / "ws"), "all", str(d), "--views", "4"],
-                             catch_exceptions=False)
+    res = CliRunner().invoke(cli, ["--config", str(cfg), "-w", str(tmp_path / "ws"), "all", str(d), "--views", "4",
+                                   "--masks", "none"], catch_exceptions=False)
     assert res.exit_code == 0, res.output
     ws = Workspace(tmp_path / "ws")
     assert ws.manifest("fine")["start"] == "coarse"  # no masks, no visual hull: G_f starts from G_c
@@ -302,7 +303,6 @@ def test_silhouette_model_carves_the_hull_and_fine_starts_there(tiny, tmp_path):
     silhouettes and a carved hull that still covers every real mask pixel, and G_f starts from it."""
     import torch
 
-    from wgs.config import CARVED_HULL, VIEWS
     from wgs.models.silhouette_net import SilhouetteNet, SilhouetteNetConfig
     from wgs.models.storage import save_model
     from wgs.scene.dataset import load_prepared
@@ -318,13 +318,13 @@ def test_silhouette_model_carves_the_hull_and_fine_starts_there(tiny, tmp_path):
     cfg2 = tmp_path / "wgs.toml"
     cfg2.write_text(cfg.read_text().replace("[repair]\n", f"[repair]\nsilhouette_model = '{tmp_path / 'S'}'\n"))
     run_all(cfg2, ws.root, scene)
-    views = json.loads((ws.stage_dir("repair") / VIEWS).read_text())["views"]
+    views = json.loads(ws.output("repair", "views").read_text())["views"]
     assert all((ws.stage_dir("repair") / v["silhouette"]).is_file() for v in views)
     counts = ws.manifest("repair")["carving"]
     assert counts["carved"] > 0 and counts["restored"] > 0  # S wanted it all; the real masks kept some
     assert ws.manifest("fine")["start"] == "carved hull"
     prepared = load_prepared(ws.stage_dir("scene"))
-    carved = load_grid(ws.stage_dir("repair") / CARVED_HULL)
+    carved = load_grid(ws.output("repair", "carved_hull"))
     full, _ = visual_hull_grid(prepared.train, carved.resolution, tolerate=0)
     for f in prepared.train:
         was = silhouette(full, f)[0] & (f.mask > 0.5)

@@ -5,14 +5,13 @@ from click.testing import CliRunner
 from conftest import expect_error
 
 from wgs.cli import cli
-from wgs.config import CKPT
 from wgs.gaussians.splats import load_checkpoint
 from wgs.gaussians.trainer import render_frame
 from wgs.models.denoiser_meta import DenoiserMeta
 from wgs.models.repair import Repairer
 from wgs.scene.dataset import load_prepared
 from wgs.stages import s1_coarse
-from wgs.stages.shared import coarse_members, ensemble_repair, member_checkpoint
+from wgs.stages.shared import coarse_members, ensemble_repair, member_file
 from wgs.workspace import Workspace
 
 TINY = ["--preset", "fast", "--iterations", "40"]
@@ -28,14 +27,13 @@ def test_members_are_trained_from_other_seeds_and_averaged(blender_scene, tmp_pa
     ws = Workspace(tmp_path / "ws")
     invoke("-w", ws.root, "prepare", blender_scene)
     invoke("-w", ws.root, "coarse", *TINY, "--ensemble", "3")
-    d = ws.stage_dir("coarse")
     assert ws.manifest("coarse")["ensemble"] == 3 and len(ws.manifest("coarse")["member_seconds"]) == 2
     scene = load_prepared(ws.stage_dir("scene"))
     members = coarse_members(ws, scene, torch.device("cpu"))
     assert len(members) == 3
-    g_c = load_checkpoint(d / CKPT, scene.norm)[0]
+    g_c = load_checkpoint(ws.output("coarse", "model"), scene.norm)[0]
     assert torch.equal(members[0]["means"], g_c["means"])
-    m1 = load_checkpoint(d / member_checkpoint(1), scene.norm)[0]
+    m1 = load_checkpoint(ws.output("coarse", "members", member_file(1)), scene.norm)[0]
     assert not torch.equal(m1["means"][:100], g_c["means"][:100])  # another seed, another model
 
     # with an identity repair the pseudo reference is the mean of the members' renders
@@ -80,10 +78,10 @@ def test_models_side_by_side_equal_the_one_thread_ones_in_order(blender_scene, t
     monkeypatch.setattr(s1_coarse, "side_by_side", lambda cfg, device, pixels: 2)
     invoke("-w", side.root, "coarse", *TINY, "--ensemble", "3")  # (also resets the thread count)
     assert serial.manifest("coarse")["side_by_side"] == 1 and side.manifest("coarse")["side_by_side"] == 2
-    for name in (CKPT, member_checkpoint(1), member_checkpoint(2)):
-        a = load_checkpoint(serial.stage_dir("coarse") / name)[0]
-        b = load_checkpoint(side.stage_dir("coarse") / name)[0]
-        assert all(torch.equal(a[k], b[k]) for k in a), name
+    for parts in (("model",), ("members", member_file(1)), ("members", member_file(2))):
+        a = load_checkpoint(serial.output("coarse", *parts))[0]
+        b = load_checkpoint(side.output("coarse", *parts))[0]
+        assert all(torch.equal(a[k], b[k]) for k in a), parts
     assert (side.stage_dir("coarse") / "curve.json").is_file() == (serial.stage_dir("coarse") / "curve.json").is_file()
 
 

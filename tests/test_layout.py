@@ -137,12 +137,10 @@ def test_the_stages_are_listed_once():
     import re
 
     from wgs.cli import cli
-    from wgs.config import METHOD, REGISTRY, STAGES
-    from wgs.workspace import COMMANDS, STAGE_DIRS, UPSTREAM
+    from wgs.config import METHOD, REGISTRY
 
     names = [s.name for s in REGISTRY]
-    assert list(STAGE_DIRS) == list(UPSTREAM) == list(COMMANDS) == names
-    assert list(STAGES) == [s.table for s in REGISTRY] and METHOD[-1] == "fine" and "eval" not in METHOD
+    assert METHOD[-1] == "fine" and "eval" not in METHOD and "baseline" not in METHOD
     for i, s in enumerate(REGISTRY):
         assert set(s.upstream) <= set(names[:i]), f"{s.name} reads a stage that runs after it"
         assert s.command in cli.commands
@@ -152,22 +150,61 @@ def test_the_stages_are_listed_once():
             assert not folders.search(p.read_text()), f"{p.name} spells a stage folder: use STAGE_DIRS"
 
 
-def test_cli_help_states_the_config_defaults():
-    """Every "default X" in a stage command's option help is the config's default for that option."""
+def test_cli_options_are_the_config_fields():
+    """Every stage command's option that sets a config field (and `wgs all`'s) takes the field's
+    choices and range, leaves the default to the config (None) and states the config's default."""
     import re
 
-    from wgs.cli import cli
-    from wgs.config import REGISTRY, STAGES
+    import click
 
-    stated = 0
+    from wgs.cli import cli
+    from wgs.config import CHOICES, RANGES, REGISTRY, STAGES
+
+    checked = set()
     for name in [s.command for s in REGISTRY] + ["all"]:
         command = cli.commands[name]
         classes = [STAGES[name.replace("-", "_")]] if name != "all" else list(STAGES.values())
         for param in command.params:
-            m = re.search(r"default ([^\s;)]+)", getattr(param, "help", None) or "")
             owners = [c for c in classes if param.name in c.__dataclass_fields__]
-            if m is None or not owners:
+            if not owners:
                 continue
-            stated += 1
-            assert m.group(1).rstrip(".") == str(getattr(owners[0], param.name)), (name, param.name)
-    assert stated >= 4  # --ensemble (coarse, all), --n-regions, --coverage, --levels
+            default = getattr(owners[0], param.name)
+            assert param.default is None, (name, param.name)
+            if param.name in CHOICES:
+                assert tuple(param.type.choices) == CHOICES[param.name], (name, param.name)
+            if param.name in RANGES:
+                assert isinstance(param.type, click.IntRange | click.FloatRange), (name, param.name)
+                assert (param.type.min, param.type.max) == RANGES[param.name], (name, param.name)
+            m = re.search(r"\(default ([^\s;)]+)\)", param.help or "")
+            if default is None:
+                assert m is None, (name, param.name)
+            else:
+                stated = str(default).lower() if isinstance(default, bool) else str(default)
+                assert m is not None and m.group(1) == stated, (name, param.name, param.help)
+            checked.add((name, param.name))
+    assert len(checked) >= 30 and ("all", "ensemble") in checked and ("coarse", "sh_degree") in checked
+
+
+def test_a_config_range_is_enforced_for_every_command():
+    """`wgs all` validates what `wgs coarse` does: the range lives in the config, not in one command."""
+    import pytest
+
+    from wgs.config import resolve
+    from wgs.errors import InputError
+
+    for table, key, bad in (("coarse", "sh_degree", 4), ("fine", "sh_degree", -1), ("prepare", "views", 1),
+                            ("prepare", "downscale", 0)):
+        with pytest.raises(InputError, match=key):
+            resolve(table, file_cfg={table: {key: bad}})
+
+
+def test_readers_find_outputs_through_the_registry():
+    """No module joins a path onto another stage's folder: what a stage writes for others is declared
+    in `config.REGISTRY` (`Stage.outputs`) and found with `Workspace.output`."""
+    import re
+
+    joined = re.compile(r"stage_dir\([^)]*\)\s*/|STAGE_DIRS\[[^\]]*\]\s*/\s*[\"A-Z]")
+    for p in WGS.rglob("*.py"):
+        if p.name != "workspace.py":
+            hits = joined.findall(p.read_text())
+            assert not hits, f"{p.relative_to(WGS.parent)} spells a stage's path: {hits}"

@@ -9,6 +9,8 @@ from click.testing import CliRunner
 from wgs.cli import cli
 from wgs.io.exr import read_subbands
 from wgs.models.storage import load_model
+from wgs.scene.dataset import load_prepared
+from wgs.stages.shared import subband_file
 from wgs.workspace import Workspace
 
 TRAIN = ["--preset", "fast", "--iterations", "40"]
@@ -62,8 +64,8 @@ def test_mask_data_pairs_and_index(coarse_ws, tmp_path, strategy):
     assert rgb["RGB"].shape == (48, 48, 3)
     hidden = float(rgb["M"].mean())
     assert (hidden == 0.0) if strategy == "loo" else (0.1 < hidden < 0.6)
-    for h in index["hf_pairs"]:
-        assert (ws.root / h["render"]).is_file() and (ws.root / h["ref"]).is_file()
+    assert index["hf_views"] == [f.name for f in load_prepared(ws.output("scene", "prepared")).train]
+    assert all(subband_file(ws, kind, v).is_file() for v in index["hf_views"] for kind in ("render", "ref"))
     m = ws.manifest("mask_data")
     assert m["strategy"] == strategy and m["models"] == (4 if strategy == "loo" else 1)
     assert m["strategy_seconds"] > 0

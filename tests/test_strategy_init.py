@@ -197,4 +197,3 @@ def test_densification_defaults_live_in_one_place():
     assert (s.refine_stop, s.max_gaussians, s.scene_extent) == (123, 77, 2.0)
     for f in dataclasses.fields(DensifyParams):
         assert getattr(s, f.name) == getattr(cfg, f.name)
-    assert TrainConfig().refine_stop == DensifyParams().refine_stop

@@ -26,12 +26,11 @@ from typing import Any
 
 import click
 
-from .config import RESULTS
 from .errors import InputError
 from .io import atomic_write_bytes, atomic_write_json
 from .progress import fmt, log
 from .threads import COUNT_VARS, ENV, available_cores
-from .workspace import STAGE_DIRS
+from .workspace import Workspace
 
 BATCH_DIR = "_batch"
 DONE = "batch_done.json"
@@ -127,7 +126,7 @@ def run_scene(task: SceneTask, root: str, global_args: list[str], env: dict[str,
     key = {"args": [*global_args, "all", task.scene, *task.options]}
     done = ws / DONE
     if (not rerun and done.is_file() and _read(done) == key
-            and (ws / STAGE_DIRS["eval"] / RESULTS).is_file()):
+            and Workspace(ws).output("eval", "results").is_file()):
         return {"name": task.name, "status": "skipped", "seconds": 0.0, "error": None}
     logs = Path(root) / BATCH_DIR / "logs"
     logs.mkdir(parents=True, exist_ok=True)
@@ -260,7 +259,7 @@ def summarize(root: Path, tasks: list[SceneTask], ran: dict[str, dict[str, Any]]
     rows = []
     for t in tasks:
         ws = root / t.name
-        res = _read(ws / STAGE_DIRS["eval"] / RESULTS)
+        res = _read(Workspace(ws).output("eval", "results"))
         err = (ws / ERROR).read_text(encoding="utf-8").splitlines()[0] if (ws / ERROR).is_file() else None
         status = "failed" if err else ("done" if isinstance(res, dict) else "not run")
         row: dict[str, Any] = {"scene": t.name, "path": t.scene, "status": status, "error": err}

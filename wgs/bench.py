@@ -21,9 +21,9 @@ from pathlib import Path
 
 import torch
 
-from .config import RESULTS
 from .gaussians.render import rasterize
-from .workspace import STAGE_DIRS, peak_memory_mb
+from .scene.dataset import load_prepared
+from .workspace import STAGE_DIRS, Workspace, peak_memory_mb
 
 CASES = ((128, 10_000), (256, 50_000))
 
@@ -91,37 +91,28 @@ def bench_pipeline(scene: str, root: str, preset: str, views: int, downscale: in
     base = Path(root)
     if base.exists():
         shutil.rmtree(base)
-    ws, ws_3dgs, ws_loo = base / "wgs", base / "3dgs", base / "loo"
+    ws, ws_loo = base / "wgs", base / "loo"
     pre = ["--preset", preset]
     t_all = wgs_cli("-w", str(ws), "all", scene, "--views", str(views), "--downscale", str(downscale), *pre)
-    res = json.loads((ws / STAGE_DIRS["eval"] / RESULTS).read_text())
-    # plain 3DGS for the same time: same scene folder, coarse trainer with a time budget
-    ws_3dgs.mkdir(parents=True)
-    shutil.copytree(ws / STAGE_DIRS["scene"], ws_3dgs / STAGE_DIRS["scene"])
-    coarse = json.loads((ws / STAGE_DIRS["coarse"] / "manifest.json").read_text())
-    scale = t_all / coarse["train_seconds"] * 4  # generous: the time budget decides, schedules follow it
-    its = int(coarse["iterations"] * scale)
-    refine_stop = int(coarse["config"]["refine_stop"] * scale)
-    cfg = base / "3dgs.toml"
-    cfg.write_text(f"[coarse]\niterations = {its}\nmax_seconds = {t_all:.1f}\nrefine_stop = {refine_stop}\n"
-                   "ensemble = 1\n")
-    t_3dgs = wgs_cli("--config", str(cfg), "-w", str(ws_3dgs), "coarse", *pre)
-    wgs_cli("-w", str(ws_3dgs), "eval", *pre)
-    res_3dgs = json.loads((ws_3dgs / STAGE_DIRS["eval"] / RESULTS).read_text())
+    res = json.loads(Workspace(ws).output("eval", "results").read_text())
+    # plain 3DGS for the training time of the stages just run (`wgs baseline`), scored by eval beside them
+    t_3dgs = wgs_cli("-w", str(ws), "baseline", *pre)
+    wgs_cli("-w", str(ws), "eval", *pre)
+    res_3dgs = json.loads(Workspace(ws).output("eval", "results").read_text())["baseline_3dgs"]
     # leave-one-out pairs on the same coarse model, timed right after ORM's (recorded by `wgs all`)
     ws_loo.mkdir(parents=True)
     for d in (STAGE_DIRS["scene"], STAGE_DIRS["coarse"]):
         shutil.copytree(ws / d, ws_loo / d)
     wgs_cli("-w", str(ws_loo), "mask-data", "--strategy", "loo", *pre)
-    orm = json.loads((ws / STAGE_DIRS["mask_data"] / "manifest.json").read_text())
-    loo = json.loads((ws_loo / STAGE_DIRS["mask_data"] / "manifest.json").read_text())
-    ft = json.loads((ws / STAGE_DIRS["finetune"] / "manifest.json").read_text())
+    orm = Workspace(ws).manifest("mask_data")
+    loo = Workspace(ws_loo).manifest("mask_data")
+    ft = Workspace(ws).manifest("finetune")
     pick = ("psnr", "psnr_std", "ssim", "ssim_std", "lpips", "lpips_std", "num_gaussians", "num_views")
     return {
         "benchmark": "pipeline", "scene": scene, "preset": preset, "views": views, "downscale": downscale,
         "wgs_all_wall_s": t_all, "stage_times_s": res["stage_times_s"],
         "coarse": {k: res["coarse"].get(k) for k in pick}, "fine": {k: res.get(k) for k in pick},
-        "plain_3dgs": {**{k: res_3dgs["coarse"].get(k) for k in pick}, "wall_s": t_3dgs},
+        "plain_3dgs": {**{k: res_3dgs.get(k) for k in pick}, "wall_s": t_3dgs},
         "mask_data": {"orm_s": orm["strategy_seconds"], "loo_s": loo["strategy_seconds"],
                       "ratio_orm_over_loo": orm["strategy_seconds"] / loo["strategy_seconds"],
                       "orm_pairs": orm["num_pairs"], "loo_pairs": loo["num_pairs"]},
@@ -293,11 +284,10 @@ def bench_shape(mirror: str, root: str, objects: tuple[str, ...], preset: str, v
             if carve == "--carve" and not ws.exists():  # the stages before repair are shared
                 shutil.copytree(base / name / "no-carve", ws)
             t = wgs_cli("-w", str(ws), "all", str(scene), "--views", str(views), "--preset", preset, carve)
-            res = json.loads((ws / STAGE_DIRS["eval"] / RESULTS).read_text())
+            res = json.loads(Workspace(ws).output("eval", "results").read_text())
             row[carve.strip("-")] = {"psnr": res["psnr"], "silhouette_iou": res.get("silhouette_iou"),
                                      "coarse_psnr": res["coarse"]["psnr"], "wall_s": round(t, 1),
-                                     "carving": (json.loads((ws / STAGE_DIRS["repair"] / "manifest.json")
-                                                            .read_text()).get("carving"))}
+                                     "carving": Workspace(ws).manifest("repair").get("carving")}
             shape = res.get("shape") or {}
             row["leave_one_out_iou"] = (shape.get("leave_one_out") or {}).get("iou")
             row["hull_test_iou"] = (shape.get("hull_test") or {}).get("iou")
@@ -326,15 +316,13 @@ def bench_iteration(scene: str, root: str, views: int, downscale: int, window: i
 
     from .config import resolve
     from .gaussians.trainer import train_gaussians
-    from .scene.dataset import load_prepared
     from .stages import StageEnv, run_stage
     from .stages.shared import initial_splats
-    from .workspace import Workspace
 
     ws = Workspace(Path(root) / "iteration")
     run_stage("scene", ws, resolve("prepare", cli={"views": views, "downscale": downscale}),
               StageEnv(torch.device("cpu"), seed, scene_dir=Path(scene)))
-    prepared = load_prepared(ws.stage_dir("scene"))
+    prepared = load_prepared(ws.output("scene", "prepared"))
     cfg = resolve("coarse")
     total = cfg.iterations
     start = total // 2
@@ -373,10 +361,60 @@ def bench_iteration(scene: str, root: str, views: int, downscale: int, window: i
             "machine": {"platform": platform.platform(), "cpus": os.cpu_count()}}
 
 
+def object_psnr(ws: Workspace, masks_from: Workspace) -> dict[str, float]:
+    """PSNR of `ws`'s newest model against the photo inside the test masks of `masks_from`, per test
+    view: the one number that compares a run with masks to one without (each renders its own
+    background, which the mask leaves out)."""
+    from .gaussians.splats import load_checkpoint
+    from .gaussians.trainer import render_frame
+    from .metrics import psnr
+    from .stages.shared import background_for, newest_model
+
+    scene = load_prepared(ws.output("scene", "prepared"), load_test_images=True)
+    masked = {f.name: f.mask for f in load_prepared(masks_from.output("scene", "prepared"), True).test}
+    splats, _ = load_checkpoint(ws.output(newest_model(ws), "model"), scene.norm)
+    out = {}
+    for f in scene.test:
+        keep = masked[f.name] > 0.5
+        rgb, _ = render_frame(splats, f, torch.device("cpu"), background_for(scene))
+        out[f.name] = psnr(rgb[keep], f.image[keep])
+    return out
+
+
+def bench_masks(scene: str, root: str, preset: str, views: int, downscale: int) -> dict:
+    """`wgs all` on photos without masks, with automatic masks and with none, both scored by PSNR
+    inside the automatic test masks (`object_psnr`); wall times of each."""
+    base = Path(root) / "masks"
+    runs = {}
+    for mode in ("auto", "none"):
+        ws = base / mode
+        t = wgs_cli("-w", str(ws), "all", scene, "--views", str(views), "--downscale", str(downscale),
+                    "--masks", mode, "--preset", preset)
+        runs[mode] = (Workspace(ws), t)
+    auto = runs["auto"][0]
+    out = {"benchmark": "masks", "scene": scene, "preset": preset, "views": views, "downscale": downscale,
+           "metric": "PSNR (dB) inside the automatic test masks, each model on its own background",
+           "masks": auto.manifest("scene")["summary"]["masks"]}
+    for mode, (ws, t) in runs.items():
+        per = object_psnr(ws, auto)
+        out[mode] = {"object_psnr": statistics.fmean(per.values()), "per_view": per, "wgs_all_wall_s": round(t, 1),
+                     "eval_psnr": json.loads(ws.output("eval", "results").read_text())["psnr"]}
+    out["gain_db"] = out["auto"]["object_psnr"] - out["none"]["object_psnr"]
+    return out
+
+
+def report(root: str, name: str, res: dict, shown: dict | None = None) -> None:
+    """Write ROOT/NAME.json and print `shown` (default: all of it) as JSON."""
+    Path(root).mkdir(parents=True, exist_ok=True)
+    (Path(root) / f"{name}.json").write_text(json.dumps(res, indent=2))
+    json.dump(res if shown is None else shown, sys.stdout, indent=2)
+    print()
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(prog="python -m wgs.bench")
     ap.add_argument("which", choices=["rasterizer", "iteration", "pipeline", "batch", "contention", "knn", "sfm",
-                                      "shape"])
+                                      "shape", "masks"])
     ap.add_argument("--json", action="store_true", help="print JSON instead of a table")
     ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--ref-repeats", type=int, default=3)
@@ -400,12 +438,16 @@ def main(argv: list[str] | None = None) -> None:
         json.dump(bench_iteration(a.scene, a.root, a.views, a.downscale), sys.stdout, indent=2)
         print()
         return
+    if a.which == "masks":
+        if not Path(a.scene).is_dir():
+            print(f"scene {a.scene} not found: skipped")
+            return
+        res = bench_masks(a.scene, a.root, a.preset or "default", a.views, a.downscale)
+        report(a.root, "masks", res, {k: v for k, v in res.items() if k not in ("auto", "none")} | {
+            m: {k: v for k, v in res[m].items() if k != "per_view"} for m in ("auto", "none")})
+        return
     if a.which == "shape":
-        res = bench_shape(a.mirror, a.root, tuple(a.objects.split(",")), a.preset or "fast", a.views)
-        Path(a.root).mkdir(exist_ok=True)
-        (Path(a.root) / "shape.json").write_text(json.dumps(res, indent=2))
-        json.dump(res, sys.stdout, indent=2)
-        print()
+        report(a.root, "shape", bench_shape(a.mirror, a.root, tuple(a.objects.split(",")), a.preset or "fast", a.views))
         return
     if a.which == "sfm":
         if not Path(a.scene).is_dir():
@@ -429,20 +471,13 @@ def main(argv: list[str] | None = None) -> None:
         print()
         return
     if a.which == "batch":
-        res = bench_batch(a.root, a.preset or "fast")
-        (Path(a.root) / "batch.json").write_text(json.dumps(res, indent=2))
-        json.dump(res, sys.stdout, indent=2)
-        print()
+        report(a.root, "batch", bench_batch(a.root, a.preset or "fast"))
         return
     if a.which == "pipeline":
         if not Path(a.scene).is_dir():
             print(f"scene {a.scene} not found: skipped")
             return
-        res = bench_pipeline(a.scene, a.root, a.preset or "default", a.views, a.downscale)
-        Path(a.root).mkdir(exist_ok=True)
-        (Path(a.root) / "pipeline.json").write_text(json.dumps(res, indent=2))
-        json.dump(res, sys.stdout, indent=2)
-        print()
+        report(a.root, "pipeline", bench_pipeline(a.scene, a.root, a.preset or "default", a.views, a.downscale))
         return
     res = bench_rasterizer(a.repeats, a.ref_repeats)
     if a.json:

@@ -13,6 +13,7 @@ from pathlib import Path
 import click
 
 from . import __version__
+from .cli_options import config_options, preset_option
 from .config import as_dict, load_config_file
 from .context import Ctx
 from .errors import WgsError
@@ -86,30 +87,19 @@ def workspace_option(f):
 
 def stage_common(f):
     f = click.option("--force", is_flag=True, help="Rerun even when up to date.")(f)
-    f = click.option("--preset", type=click.Choice(["fast", "default", "paper"]), default=None,
-                     help="Budget preset.")(f)
+    f = preset_option(f)
     return workspace_option(f)
 
 
 @cli.command()
 @click.argument("scene", type=click.Path(path_type=Path))
-@click.option("--views", type=int, default=None, help="Number of training views (farthest-point or sparse_N.txt).")
-@click.option("--downscale", type=int, default=None, help="Integer downscale factor (uses images_K/ if present).")
-@click.option("--max-pixels", type=int, default=None, help="Refuse images larger than this many pixels.")
-@click.option("--matcher", type=click.Choice(["auto", "exhaustive", "sequential"]), default=None,
-              help="Photos without poses: feature matching for structure-from-motion "
-                   "(auto: exhaustive up to 150 photos, else sequential by name).")
+@config_options("prepare", "views", "downscale", "max_pixels", "matcher", "masks", "mask_agreement")
 @stage_common
 @click.pass_obj
-def prepare(obj: Ctx, scene: Path, views, downscale, max_pixels, matcher, force, preset) -> None:
+def prepare(obj: Ctx, scene: Path, force, preset, **options) -> None:
     """Import SCENE (COLMAP, Blender, instant-ngp/nerfstudio, IDR, LLFF, or photos without poses,
     which structure-from-motion poses) into the workspace."""
-    cfg = obj.config("prepare", preset, views=views, downscale=downscale, max_pixels=max_pixels, matcher=matcher)
-    if cfg.views is not None and cfg.views < 2:
-        raise WgsError(f"--views must be at least 2, got {cfg.views}")
-    if cfg.downscale < 1:
-        raise WgsError(f"--downscale must be a positive integer, got {cfg.downscale}")
-    obj.run_stage("scene", cfg, force, scene_dir=scene)
+    obj.run_stage("scene", obj.config("prepare", preset, **options), force, scene_dir=scene)
 
 
 @cli.command()
@@ -178,6 +168,9 @@ def main(argv: list[str] | None = None) -> None:
             exc.message = f"{exc.message} ({where})"
         exc.show()
         sys.exit(exc.exit_code)
+    except click.BadParameter as exc:  # an option's value out of its choices or range: one line, like bad files
+        click.echo(f"error: {exc.format_message()}", err=True)
+        sys.exit(2)
     except click.ClickException as exc:
         exc.show()
         sys.exit(exc.exit_code)

@@ -6,9 +6,32 @@ from pathlib import Path
 
 import click
 
-from .config import CoarseConfig, FinetuneConfig, MaskDataConfig
+from .cli_options import config_option, config_options, preset_option
+from .config import PRESETS
 from .errors import WgsError
 from .progress import log
+
+# `wgs all`'s own options: config field -> the stage tables it sets
+ALL_FIELDS: dict[str, tuple[str, ...]] = {
+    "views": ("prepare",), "downscale": ("prepare",), "matcher": ("prepare",), "masks": ("prepare",),
+    "ensemble": ("coarse",),
+    "strategy": ("mask_data",), "domain": ("finetune",), "use_u": ("finetune",), "prior": ("finetune",),
+    "carve": ("repair",), "lpips_weights": ("fine", "eval")}
+
+
+def all_options(f):
+    for name, tables in reversed(ALL_FIELDS.items()):
+        f = config_option(tables[0], name)(f)
+    return f
+
+
+def all_overrides(options: dict) -> dict[str, dict]:
+    """`wgs all`'s option values as per-table overrides of the stages' configs."""
+    out: dict[str, dict] = {}
+    for name, tables in ALL_FIELDS.items():
+        for table in tables:
+            out.setdefault(table, {})[name] = options[name]
+    return out
 
 model_stage_option = click.option("--stage", "stage", type=click.Choice(["coarse", "fine"]), default=None,
                                   help="Which model (default: the newest, fine when it exists).")
@@ -18,141 +41,73 @@ def register(cli, stage_common, workspace_option) -> None:
     """Add the stage subcommands to the `wgs` group."""
 
     @cli.command()
-    @click.option("--iterations", type=int, default=None, help="Training iterations.")
-    @click.option("--max-seconds", type=float, default=None, help="Stop training after this many seconds.")
-    @click.option("--sh-degree", type=int, default=None, help="Spherical-harmonics degree (0-3).")
-    @click.option("--ensemble", type=click.IntRange(min=1), default=None,
-                  help="Coarse models from consecutive seeds; the repair averages their repaired renders "
-                       f"(default {CoarseConfig.ensemble}; 1: G_c alone).")
+    @config_options("coarse", "iterations", "max_seconds", "sh_degree", "ensemble")
     @stage_common
     @click.pass_obj
-    def coarse(obj, iterations, max_seconds, sh_degree, ensemble, force, preset):
+    def coarse(obj, force, preset, **options):
         """Train the coarse 3DGS G_c on the training views."""
-        cfg = obj.config("coarse", preset, iterations=iterations, max_seconds=max_seconds, sh_degree=sh_degree,
-                         ensemble=ensemble)
-        if not 0 <= cfg.sh_degree <= 3:
-            raise click.BadParameter(f"SH degree must be 0..3, got {cfg.sh_degree}", param_hint="--sh-degree")
-        obj.run_stage("coarse", cfg, force)
+        obj.run_stage("coarse", obj.config("coarse", preset, **options), force)
 
     @cli.command("mask-data")
-    @click.option("--strategy", type=click.Choice(["orm", "offline-rm", "loo"]), default=None,
-                  help="orm: online random masking (default); offline-rm: static masks; loo: leave-one-out.")
-    @click.option("--iterations", type=int, default=None, help="Training iterations (per model for loo).")
-    @click.option("--n-regions", type=int, default=None,
-                  help=f"Mask regions per view (default {MaskDataConfig.n_regions}).")
-    @click.option("--coverage", type=float, default=None,
-                  help=f"Hidden fraction of the object area (default {MaskDataConfig.coverage}).")
+    @config_options("mask_data", "strategy", "iterations", "n_regions", "coverage")
     @stage_common
     @click.pass_obj
-    def mask_data(obj, strategy, iterations, n_regions, coverage, force, preset):
+    def mask_data(obj, force, preset, **options):
         """Corrupted/clean pairs for the repair models (trains G_d, or N models for loo)."""
-        cfg = obj.config("mask_data", preset, strategy=strategy, iterations=iterations, n_regions=n_regions,
-                         coverage=coverage)
-        obj.run_stage("mask_data", cfg, force)
+        obj.run_stage("mask_data", obj.config("mask_data", preset, **options), force)
 
     @cli.command()
-    @click.option("--domain", type=click.Choice(["wavelet", "rgb"]), default=None,
-                  help="wavelet: D repairs the LL subband and U the HF ones (default); rgb: D on RGB, no U.")
-    @click.option("--no-u", "no_u", is_flag=True, default=None, help="Do not train the HF U-Net.")
-    @click.option("--levels", type=int, default=None,
-                  help=f"Haar levels J (D at 1/2^J resolution; default {FinetuneConfig.levels}).")
-    @click.option("--d-steps", type=int, default=None, help="Training steps of D.")
-    @click.option("--diffusion", type=click.Choice(["embedded", "controlnet"]), default=None,
-                  help="embedded: our CPU-sized denoiser (default); controlnet: SD 1.5 + ControlNet-tile + LoRA.")
-    @click.option("--sd-model", type=click.Path(path_type=str), default=None, help="Local Stable Diffusion 1.5 folder.")
-    @click.option("--controlnet", type=click.Path(path_type=str), default=None, help="Local ControlNet-tile folder.")
-    @click.option("--u-max-steps", type=int, default=None, help="Step limit of U (early stopping ends it sooner).")
-    @click.option("--prior", default=None, metavar="builtin|none|DIR",
-                  help="Start D and U from the pretrained repair prior (builtin, the default), train them from "
-                       "scratch (none), or from a prior folder with D/ and U/.")
+    @config_options("finetune", "domain", "use_u", "levels", "d_steps", "diffusion", "sd_model", "controlnet",
+                    "u_max_steps", "prior")
     @stage_common
     @click.pass_obj
-    def finetune(obj, domain, no_u, levels, d_steps, diffusion, sd_model, controlnet, u_max_steps, prior, force,
-                 preset):
+    def finetune(obj, force, preset, **options):
         """Fine-tune the repair model D (from the pretrained prior) and the HF U-Net U on this object."""
-        cfg = obj.config("finetune", preset, domain=domain, use_u=False if no_u else None, levels=levels,
-                         d_steps=d_steps, u_max_steps=u_max_steps, diffusion=diffusion, sd_model=sd_model,
-                         controlnet=controlnet, prior=prior)
-        obj.run_stage("finetune", cfg, force)
+        obj.run_stage("finetune", obj.config("finetune", preset, **options), force)
 
     @cli.command()
-    @click.option("--poses", type=click.Choice(["sphere", "arc"]), default=None,
-                  help="Pseudo viewpoints: a band over the view sphere (default) or arcs between training views.")
-    @click.option("--num-views", type=int, default=None, help="Pseudo views in all (sphere poses).")
-    @click.option("--strength", type=float, default=None,
-                  help="SDEdit strength (noise level) of a from-scratch D's repair (a prior's D runs one step).")
-    @click.option("--steps", type=int, default=None, help="DDIM steps of a from-scratch D's repair.")
-    @click.option("--views-per-train", type=int, default=None, help="Novel viewpoints per training view (arc poses).")
-    @click.option("--carve/--no-carve", default=None,
-                  help="The silhouette model S carves the visual hull at the pseudo views (default: on).")
+    @config_options("repair", "poses", "num_views", "strength", "steps", "views_per_train", "carve")
     @stage_common
     @click.pass_obj
-    def repair(obj, poses, num_views, strength, steps, views_per_train, carve, force, preset):
+    def repair(obj, force, preset, **options):
         """Render G_c at novel views and repair them with D and U -> pseudo references."""
-        cfg = obj.config("repair", preset, poses=poses, num_views=num_views, strength=strength, steps=steps,
-                         views_per_train=views_per_train, carve=carve)
-        obj.run_stage("repair", cfg, force)
+        obj.run_stage("repair", obj.config("repair", preset, **options), force)
 
     @cli.command()
-    @click.option("--iterations", type=int, default=None, help="Training iterations (per round).")
-    @click.option("--rounds", type=int, default=None,
-                  help="Rounds of repair + refinement: each later one repairs the refined model's renders again.")
-    @click.option("--lpips-weights", type=click.Path(path_type=str), default=None,
-                  help="Folder with LPIPS weights for the pseudo views' LPIPS term (see eval).")
-    @click.option("--start", type=click.Choice(["auto", "coarse", "hull"]), default=None,
-                  help="Train G_f from the visual hull or from G_c (auto: the hull when the scene has masks).")
+    @config_options("fine", "iterations", "rounds", "lpips_weights", "start")
     @stage_common
     @click.pass_obj
-    def fine(obj, iterations, rounds, lpips_weights, start, force, preset):
+    def fine(obj, force, preset, **options):
         """Train G_f on the real and the pseudo references."""
-        cfg = obj.config("fine", preset, iterations=iterations, rounds=rounds, lpips_weights=lpips_weights,
-                         start=start)
-        obj.run_stage("fine", cfg, force)
+        obj.run_stage("fine", obj.config("fine", preset, **options), force)
 
     @cli.command("eval")
-    @click.option("--lpips-net", type=click.Choice(["alex", "vgg"]), default=None, help="LPIPS backbone.")
-    @click.option("--lpips-weights", type=click.Path(path_type=str), default=None,
-                  help="Folder with the LPIPS weights (else $WGS_LPIPS_WEIGHTS, $TORCH_HOME/hub/checkpoints).")
-    @click.option("--max-views", type=int, default=None, help="Evaluate on the first N test views only.")
-    @click.option("--repair-gain-views", type=int, default=None,
-                  help="Score the repair at N test poses spread over them (0: all).")
-    @click.option("--baseline", is_flag=True, default=None,
-                  help="Also train plain 3DGS for the pipeline's training time and plot its curve.")
+    @config_options("eval", "lpips_net", "lpips_weights", "max_views", "repair_gain_views")
     @stage_common
     @click.pass_obj
-    def eval_(obj, lpips_net, lpips_weights, max_views, repair_gain_views, baseline, force, preset):
-        """PSNR, SSIM, LPIPS of G_f and G_c on the test views, and the error-against-time report."""
-        final = "fine" if obj.ws().manifest("fine") is not None else "coarse"
-        cfg = obj.config("eval", preset, lpips_net=lpips_net, lpips_weights=lpips_weights, max_views=max_views,
-                         repair_gain_views=repair_gain_views, baseline=baseline)
-        obj.run_stage("eval", cfg, force, final=final)
+    def eval_(obj, force, preset, **options):
+        """PSNR, SSIM, LPIPS and silhouettes of G_f and G_c on the test views, and the error-against-time report."""
+        from .stages.shared import newest_model
+
+        obj.run_stage("eval", obj.config("eval", preset, **options), force, final=newest_model(obj.ws()))
+
+    @cli.command()
+    @stage_common
+    @click.pass_obj
+    def baseline(obj, force, preset):
+        """Plain 3DGS trained for the pipeline's training time (what that time buys without the repair);
+        eval then draws its curve beside the method's."""
+        obj.run_stage("baseline", obj.config("baseline", preset), force)
 
     @cli.command("all")
     @click.argument("scene", type=click.Path(path_type=Path))
-    @click.option("--views", type=int, default=None, help="Number of training views.")
-    @click.option("--downscale", type=int, default=None, help="Integer image downscale factor.")
-    @click.option("--strategy", type=click.Choice(["orm", "offline-rm", "loo"]), default=None,
-                  help="Pair generation of mask-data.")
-    @click.option("--domain", type=click.Choice(["wavelet", "rgb"]), default=None, help="Domain of D.")
-    @click.option("--no-u", "no_u", is_flag=True, default=None, help="Do not train or use the HF U-Net.")
-    @click.option("--prior", default=None, metavar="builtin|none|DIR",
-                  help="Repair prior of D and U: builtin (default), none (from scratch), or a folder.")
-    @click.option("--ensemble", type=click.IntRange(min=1), default=None,
-                  help="Coarse models from consecutive seeds; the repair averages their repaired renders "
-                       f"(default {CoarseConfig.ensemble}; 1: G_c alone).")
+    @all_options
     @click.option("--force-repair", is_flag=True, help="Run the repair stages even with many training views.")
-    @click.option("--carve/--no-carve", default=None,
-                  help="The silhouette model S carves the visual hull at the pseudo views (default: on).")
-    @click.option("--baseline", is_flag=True, default=None,
-                  help="Also train plain 3DGS for the same training time and plot its curve (eval).")
-    @click.option("--lpips-weights", type=click.Path(path_type=str), default=None,
-                  help="Folder with LPIPS weights (fine's LPIPS term and eval).")
-    @click.option("--matcher", type=click.Choice(["auto", "exhaustive", "sequential"]), default=None,
-                  help="Photos without poses: feature matching for structure-from-motion.")
+    @click.option("--baseline", "baseline", is_flag=True,
+                  help="Also train plain 3DGS for the same training time and plot its curve (wgs baseline).")
     @stage_common
     @click.pass_obj
-    def all_(obj, scene, views, downscale, strategy, domain, no_u, prior, ensemble, force_repair, carve, baseline,
-             lpips_weights, matcher, force, preset):
+    def all_(obj, scene, force_repair, baseline, force, preset, **options):
         """Run every stage on SCENE (each skipped when up to date) and print the summary."""
         from .pipeline import print_summary, run_all
 
@@ -162,14 +117,8 @@ def register(cli, stage_common, workspace_option) -> None:
                 raise WgsError("no workspace name for the root folder: pass -w/--workspace DIR")
             obj.workspace = scene.with_name(scene.name + "_wgs")
             log(f"workspace: {obj.workspace}")
-        overrides = {"prepare": {"views": views, "downscale": downscale, "matcher": matcher},
-                     "coarse": {"ensemble": ensemble},
-                     "mask_data": {"strategy": strategy},
-                     "finetune": {"domain": domain, "use_u": False if no_u else None, "prior": prior},
-                     "repair": {"carve": carve},
-                     "fine": {"lpips_weights": lpips_weights},
-                     "eval": {"baseline": baseline, "lpips_weights": lpips_weights}}
-        outcomes = run_all(obj, scene, preset, force, force_repair, overrides)
+        outcomes = run_all(obj, scene, preset, force, force_repair, all_overrides(options),
+                           ("baseline",) if baseline else ())
         print_summary(obj.ws(), outcomes)
 
     @cli.command()
@@ -184,7 +133,7 @@ def register(cli, stage_common, workspace_option) -> None:
                   help="Run only scenes rank, rank+n, ... (default: $SLURM_ARRAY_TASK_ID, else all).")
     @click.option("--world-size", type=click.IntRange(min=1), default=None,
                   help="Number of shards n (default: $SLURM_ARRAY_TASK_COUNT, else 1).")
-    @click.option("--preset", type=click.Choice(["fast", "default", "paper"]), default=None,
+    @click.option("--preset", type=click.Choice(list(PRESETS)), default=None,
                   help="Budget preset for every scene (a line's own --preset wins).")
     @click.option("--force", is_flag=True, help="Run finished scenes again (their fresh stages are still skipped).")
     @click.option("--summary-only", is_flag=True, help="Only aggregate what the workspaces hold.")
@@ -245,7 +194,7 @@ def register(cli, stage_common, workspace_option) -> None:
     @click.option("--repeats", type=int, default=1, show_default=True, help="Runs per row (seeds seed..seed+K-1).")
     @click.option("--views", type=int, default=None, help="Number of training views.")
     @click.option("--downscale", type=int, default=None, help="Integer image downscale factor.")
-    @click.option("--preset", type=click.Choice(["fast", "default", "paper"]), default=None, help="Budget preset.")
+    @preset_option
     @workspace_option
     @click.pass_obj
     def ablate(obj, scene, rows, repeats, views, downscale, preset):

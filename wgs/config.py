@@ -9,7 +9,7 @@ from __future__ import annotations
 import dataclasses
 import types
 import typing
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +32,11 @@ class PrepareConfig:
     # photos without poses: structure-from-motion (pycolmap)
     matcher: str = "auto"  # auto (exhaustive up to 150 photos, else sequential), exhaustive, sequential
     sfm_max_image_size: int = 1600  # SIFT on photos downscaled to this longest side
+    # object masks: "auto" makes them where the scene has none (a salient-object network, then
+    # agreement between the posed views, wgs.segment), "none" makes none, or a folder of masks by image name
+    masks: str = "auto"
+    mask_agreement: float = 0.85  # auto: a voxel stays object for a view when this share of the other views hold it
+    mask_model: str | None = None  # auto: an ONNX salient-object model to use instead of the packaged U^2-Net-p
 
 
 @dataclass
@@ -197,9 +202,16 @@ class EvalConfig(LpipsWeightsConfig):
     # views and, leaving each training view out in turn, at the training views
     hull_resolution: int = TrainConfig.hull_resolution
     turntable_frames: int = 48  # a GIF of the final model on an orbit fitted to the training cameras; 0: none
-    # plain 3DGS (the coarse trainer, no repair) for the same training time as the pipeline, with its
-    # own curve on the error-against-time plot: what the time would have bought without WaveletGaussian
-    baseline: bool = False
+
+
+@dataclass
+class BaselineConfig:
+    """Plain 3DGS (the coarse stage's trainer and settings, one model, no repair) trained for the
+    time the pipeline's training stages took: what that time buys without WaveletGaussian."""
+
+    # iteration and densification caps, as a multiple of G_c's own rate over the budget: the time
+    # budget, not the caps, ends the training
+    headroom: float = 4.0
 
 
 @dataclass(frozen=True)
@@ -208,7 +220,9 @@ class Stage:
     `Workspace.stage_dir`), `folder` is its folder in the workspace, `command` its `wgs` command,
     `config` its settings (the [table] named like the command, '-' as '_'), `upstream` the stages
     whose outputs it reads (their fingerprints make it stale), `runner` its run function
-    (`module:function` in wgs.stages, see `stages.run_stage`), `method` False for what only measures."""
+    (`module:function` in wgs.stages, see `stages.run_stage`), `outputs` what it writes for others
+    to read (key -> path in its folder; readers ask `Workspace.output(stage, key)`), `method` False
+    for what only measures, `on_request` True for what runs only when asked for."""
 
     name: str
     folder: str
@@ -216,35 +230,48 @@ class Stage:
     config: type
     upstream: tuple[str, ...]
     runner: str
+    outputs: dict[str, str] = field(default_factory=dict)
     method: bool = True
+    on_request: bool = False
 
     @property
     def table(self) -> str:
         return self.command.replace("-", "_")
 
 
+_MODEL = {"model": "ckpt.pt",  # the model (normalised world) and its iteration
+          "ply": "point_cloud.ply",  # the model in the INRIA layout, world coordinates
+          "curve": "curve.json"}  # test PSNR / SSIM on probe views against training time (curves.py)
+
 REGISTRY: tuple[Stage, ...] = (
-    Stage("scene", "scene", "prepare", PrepareConfig, (), "s0_prepare:run_prepare"),
-    Stage("coarse", "1_coarse", "coarse", CoarseConfig, ("scene",), "s1_coarse:run_coarse"),
-    Stage("mask_data", "2_mask_data", "mask-data", MaskDataConfig, ("scene", "coarse"), "s2_mask_data:run_mask_data"),
-    Stage("finetune", "3_finetune", "finetune", FinetuneConfig, ("coarse", "mask_data"), "s3_finetune:run_finetune"),
-    Stage("repair", "4_repair", "repair", RepairConfig, ("scene", "coarse", "finetune"), "s4_repair:run_repair"),
+    Stage("scene", "scene", "prepare", PrepareConfig, (), "s0_prepare:run_prepare",
+          {"prepared": ".", "info": "scene.json",
+           "masks_sheet": "masks_sheet.png"}),  # automatic masks: the training photos with their outline
+    Stage("coarse", "1_coarse", "coarse", CoarseConfig, ("scene",), "s1_coarse:run_coarse",
+          {**_MODEL, "members": "members",  # the ensemble's other models, members/ckpt_<i>.pt (i >= 1)
+           "subbands": "subbands"}),  # Haar subbands of the training views, subbands/{ref,render}/<stem>.exr
+    Stage("mask_data", "2_mask_data", "mask-data", MaskDataConfig, ("scene", "coarse"), "s2_mask_data:run_mask_data",
+          {"index": "index.json"}),  # the corrupted / clean pairs, paths relative to it
+    Stage("finetune", "3_finetune", "finetune", FinetuneConfig, ("coarse", "mask_data"), "s3_finetune:run_finetune",
+          {"models": "."}),  # D/ (or D_lora/) and U/
+    Stage("repair", "4_repair", "repair", RepairConfig, ("scene", "coarse", "finetune"), "s4_repair:run_repair",
+          {"views": "views.json",  # the pseudo views' cameras and weights (and S's silhouette files)
+           "silhouettes": "silhouettes",  # per pseudo view, where the object may be (black: S is sure of background)
+           "carved_hull": "carved_hull.npz",  # the visual hull carved with S's silhouettes (shape.hull.save_grid)
+           "pseudo": "pseudo",  # the pseudo references, <stem>.exr (RGB, float) and <name> (PNG)
+           "contact_sheet": "contact_sheet.png"}),
     # fine rounds run the repair again, so it reads finetune's models too
-    Stage("fine", "5_fine", "fine", FineConfig, ("scene", "coarse", "finetune", "repair"), "s5_fine:run_fine"),
-    Stage("eval", "6_eval", "eval", EvalConfig, ("scene", "coarse", "fine"), "s6_eval:run_eval", method=False),
+    Stage("fine", "5_fine", "fine", FineConfig, ("scene", "coarse", "finetune", "repair"), "s5_fine:run_fine",
+          dict(_MODEL)),
+    Stage("baseline", "baseline", "baseline", BaselineConfig, ("scene", "coarse", "fine"), "baseline:run_baseline",
+          {"model": _MODEL["model"], "curve": _MODEL["curve"]}, method=False, on_request=True),
+    Stage("eval", "6_eval", "eval", EvalConfig, ("scene", "coarse", "fine", "baseline"), "s6_eval:run_eval",
+          {"results": "results.json", "report": "report.md", "report_html": "report.html"}, method=False),
 )
 STAGES: dict[str, type] = {s.table: s.config for s in REGISTRY}  # config table -> settings class
 METHOD: tuple[str, ...] = tuple(s.name for s in REGISTRY if s.method)  # what a reconstruction runs, in order
-
-# the output files that other stages and tools read, by the stage that writes them
-CKPT = "ckpt.pt"  # coarse, fine: the model (normalised world) and its iteration
-PLY = "point_cloud.ply"  # coarse, fine: the model in the INRIA layout, world coordinates
-MEMBERS = "members"  # coarse: the ensemble's other models, members/ckpt_<i>.pt (i >= 1)
-INDEX = "index.json"  # mask_data: the corrupted / clean pairs
-VIEWS = "views.json"  # repair: the pseudo views' cameras and weights (and S's silhouette files)
-SILHOUETTES = "silhouettes"  # repair: per pseudo view, where the object may be (black: S is sure of background), PNG
-CARVED_HULL = "carved_hull.npz"  # repair: the visual hull carved with S's silhouettes (shape.hull.save_grid)
-RESULTS = "results.json"  # eval: metrics, times, the plain-3DGS baseline
+OUTPUTS: dict[str, dict[str, str]] = {s.name: s.outputs for s in REGISTRY}
+UNASKED: tuple[str, ...] = tuple(s.name for s in REGISTRY if not s.on_request)  # what `wgs all` runs unasked
 
 
 def stages_through(name: str) -> tuple[str, ...]:
@@ -288,14 +315,14 @@ def _accepts(tp: Any, value: Any) -> bool:
     return isinstance(value, tp)
 
 
-def _field_types(cls: type) -> dict[str, Any]:
+def field_types(cls: type) -> dict[str, Any]:
     hints = typing.get_type_hints(cls)
     return {f.name: hints[f.name] for f in dataclasses.fields(cls)}
 
 
 def check_table(cls: type, table: dict[str, Any], where: str, path: str | Path | None = None) -> None:
     """Raise InputError naming the first unknown key or wrongly typed value."""
-    types_ = _field_types(cls)
+    types_ = field_types(cls)
     for key, value in table.items():
         if key not in types_:
             raise InputError(f"unknown key '{where}.{key}' (known: {', '.join(sorted(types_))})", path)
@@ -351,14 +378,17 @@ def as_dict(cfg: Any) -> dict[str, Any]:
     return dataclasses.asdict(cfg)
 
 
+# the allowed values of a text field, whichever stage's config holds it
 CHOICES: dict[str, tuple[str, ...]] = {"strategy": ("orm", "offline-rm", "loo"), "domain": ("wavelet", "rgb"),
                                        "poses": ("sphere", "arc"), "start": ("auto", "coarse", "hull"),
                                        "lpips_net": ("alex", "vgg"), "diffusion": ("embedded", "controlnet"),
                                        "matcher": ("auto", "exhaustive", "sequential")}
 
 
-RANGES: dict[str, tuple[int, int | None]] = {"ensemble": (1, None), "symmetries": (1, 8),
-                                             "repair_gain_views": (0, None)}  # inclusive; None: open
+# the allowed range of a numeric field, inclusive (None: open), whichever stage's config holds it
+RANGES: dict[str, tuple[float, float | None]] = {"views": (2, None), "downscale": (1, None), "sh_degree": (0, 3),
+                                                 "ensemble": (1, None), "symmetries": (1, 8),
+                                                 "repair_gain_views": (0, None), "mask_agreement": (0.0, 1.0)}
 
 
 def check_choices(cfg: Any) -> None:

@@ -14,8 +14,6 @@ from .metrics import psnr, ssim
 from .scene.dataset import PreparedScene, composite, load_frame_images
 from .workspace import Workspace
 
-CURVE = "curve.json"
-
 
 def probe_views(test_names: list[str], k: int) -> list[int]:
     """k test views spread evenly over the list (all when there are fewer)."""
@@ -36,7 +34,7 @@ def test_probe(ws: Workspace, scene: PreparedScene, cfg, background: torch.Tenso
     ids = probe_views([f.name for f in scene.test], k) if every_s > 0 else []
     if not ids:
         return None, []
-    frames = load_frame_images(ws.stage_dir("scene"), [scene.test[i] for i in ids])
+    frames = load_frame_images(ws.output("scene", "prepared"), [scene.test[i] for i in ids])
     refs = [composite(f.image, f.mask, background) for f in frames]
 
     def fn(splats) -> dict[str, float]:

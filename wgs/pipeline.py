@@ -12,10 +12,10 @@ from typing import Any
 
 import torch
 
-from .config import METHOD, REGISTRY, RESULTS
+from .config import METHOD, REGISTRY, UNASKED
 from .io import read_json
 from .progress import fmt, log, results
-from .workspace import Workspace
+from .workspace import COMMANDS, Workspace
 
 MANY_VIEWS = 12  # from this many training views on, diffusion repair is left out by default
 REPAIR_STAGES = METHOD[METHOD.index("coarse") + 1:]  # what a sparse-view scene adds to plain 3DGS
@@ -30,9 +30,12 @@ class StageOutcome:
     note: str = ""
 
 
-def left_out(stage: str, info: dict[str, Any], force_repair: bool) -> str | None:
-    """Why a scene does not need `stage` (one line for the log), or None when it runs."""
+def left_out(stage: str, info: dict[str, Any], force_repair: bool, asked: tuple[str, ...] = ()) -> str | None:
+    """Why a scene does not need `stage` (one line for the log), or None when it runs; `asked`: the
+    stages that run only on request and were asked for."""
     n_train, n_test = len(info["train_names"]), len(info["test_names"])
+    if stage not in UNASKED and stage not in asked:
+        return f"{COMMANDS[stage]}: runs only when asked for (`wgs all --{COMMANDS[stage]}` or `wgs {COMMANDS[stage]}`)"
     if stage in REPAIR_STAGES and n_train >= MANY_VIEWS and not force_repair:
         return f"{n_train} training views -> no diffusion repair (it is for sparse views; --force-repair runs it)"
     if stage == "eval" and not n_test:
@@ -41,9 +44,10 @@ def left_out(stage: str, info: dict[str, Any], force_repair: bool) -> str | None
 
 
 def run_all(ctx, scene_dir: Path, preset: str | None, force: bool, force_repair: bool,
-            overrides: dict[str, dict[str, Any]]) -> list[StageOutcome]:
+            overrides: dict[str, dict[str, Any]], asked: tuple[str, ...] = ()) -> list[StageOutcome]:
     """Run the registry's stages in order for the CLI context `ctx` (workspace, device, seed,
-    config file), leaving out what the scene does not need."""
+    config file), leaving out what the scene does not need and, of the stages that run only on
+    request, those not in `asked`."""
     from .stages import run_stage
 
     ws: Workspace = ctx.ws()
@@ -51,8 +55,8 @@ def run_all(ctx, scene_dir: Path, preset: str | None, force: bool, force_repair:
     outcomes: list[StageOutcome] = []
     info: dict[str, Any] | None = None
     for stage in REGISTRY:
-        if info is not None and (why := left_out(stage.name, info, force_repair)) is not None:
-            if not outcomes or outcomes[-1].note != why:
+        if info is not None and (why := left_out(stage.name, info, force_repair, asked)) is not None:
+            if (not outcomes or outcomes[-1].note != why) and stage.name in UNASKED:
                 log(f"left out: {why}")
             outcomes.append(StageOutcome(stage.table, "left out", 0.0, why))
             continue
@@ -63,7 +67,7 @@ def run_all(ctx, scene_dir: Path, preset: str | None, force: bool, force_repair:
         ran = run_stage(stage.name, ws, cfg, env, force)
         outcomes.append(StageOutcome(stage.table, "ran" if ran else "skipped (fresh)", time.perf_counter() - t0))
         if stage.name == "scene":
-            info = read_json(ws.stage_dir("scene") / "scene.json")
+            info = read_json(ws.output("scene", "info"))
             if not info["has_masks"]:
                 log("left out: no masks -> no visual hull, no mask loss, no random background")
     return outcomes
@@ -81,7 +85,7 @@ def print_summary(ws: Workspace, outcomes: list[StageOutcome]) -> None:
         table.add_row(o.stage, o.status + (f" ({o.note})" if o.note else ""), f"{o.seconds:.1f}",
                       "" if wt is None else f"{wt:.1f}")
     results.print(table)
-    res_path = ws.stage_dir("eval") / RESULTS
+    res_path = ws.output("eval", "results")
     if res_path.is_file():
         r = read_json(res_path)
         c = r["coarse"]
@@ -89,4 +93,4 @@ def print_summary(ws: Workspace, outcomes: list[StageOutcome]) -> None:
         results.print(f"test views: {r['num_views']}   PSNR {fmt(c['psnr'], 2)} -> {fmt(r['psnr'], 2)} dB   "
                       f"SSIM {fmt(c['ssim'])} -> {fmt(r['ssim'])}   LPIPS {fmt(c['lpips'])} -> {fmt(r['lpips'])}   "
                       f"(coarse -> final)")
-        results.print(f"report: {ws.stage_dir('eval') / 'report.md'}")
+        results.print(f"report: {ws.output('eval', 'report')}")

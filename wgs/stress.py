@@ -26,8 +26,8 @@ from typing import Any
 
 import torch
 
-from .config import CKPT, RESULTS
-from .workspace import STAGE_DIRS, Workspace
+from .config import UNASKED
+from .workspace import Workspace
 
 # Long enough that every stage spans several seconds on a 2-core CPU (the tests use a smaller one).
 STRESS_TOML = """
@@ -95,7 +95,7 @@ def run_until_killed(cmd: list[str], ws: Path, stage: str | None, delay_s: float
 
 def stage_started(ws: Path, stage: str) -> bool:
     """The stage before `stage` finished (for the first stage: the workspace lock exists)."""
-    order = list(STAGE_DIRS)
+    order = list(UNASKED)
     i = order.index(stage)
     if i == 0:
         return (ws / ".wgs.lock").exists()
@@ -105,7 +105,7 @@ def stage_started(ws: Path, stage: str) -> bool:
 def running_stage(ws: Path) -> str:
     """The first stage without a finished manifest: the one a kill interrupted."""
     w = Workspace(ws)
-    for stage in STAGE_DIRS:
+    for stage in UNASKED:
         if w.manifest(stage) is None:
             return stage
     return "after eval"
@@ -113,15 +113,15 @@ def running_stage(ws: Path) -> str:
 
 def outcome(ws: Path) -> dict[str, Any]:
     """What must not depend on interruptions: metrics and the final model's tensors."""
-    res = json.loads((ws / STAGE_DIRS["eval"] / RESULTS).read_text())
+    res = json.loads(Workspace(ws).output("eval", "results").read_text())
     keep = {k: res[k] for k in ("psnr", "ssim", "num_gaussians")}
     keep["coarse"] = {k: res["coarse"][k] for k in ("psnr", "ssim", "num_gaussians")}
     return keep
 
 
 def max_param_difference(a: Path, b: Path) -> float:
-    ca = torch.load(a / STAGE_DIRS["fine"] / CKPT, weights_only=True)["splats"]
-    cb = torch.load(b / STAGE_DIRS["fine"] / CKPT, weights_only=True)["splats"]
+    ca = torch.load(Workspace(a).output("fine", "model"), weights_only=True)["splats"]
+    cb = torch.load(Workspace(b).output("fine", "model"), weights_only=True)["splats"]
     if ca.keys() != cb.keys() or any(ca[k].shape != cb[k].shape for k in ca):
         return float("inf")
     return max(float((ca[k] - cb[k]).abs().max()) for k in ca)
@@ -140,11 +140,11 @@ def kill_loop(out: Path, fractions: list[float], checkpoint_every: float, hammer
     subprocess.run(wgs_command(ref, scene, cfg, False, checkpoint_every), check=True, stdout=subprocess.DEVNULL)
     total = time.perf_counter() - t0
     expected = outcome(ref)
-    stage_s = {st: Workspace(ref).manifest(st)["wall_time_s"] for st in STAGE_DIRS}
+    stage_s = {st: Workspace(ref).manifest(st)["wall_time_s"] for st in UNASKED}
     print(f"reference: {total:.1f} s, PSNR {expected['psnr']:.4f}; stage wall times (s): "
           + ", ".join(f"{k} {v:.1f}" for k, v in stage_s.items()), flush=True)
     # every stage, killed at fractions of its reference duration after it started; then a hammer trial
-    plan = [(st, f) for st in STAGE_DIRS for f in fractions] + [("hammer", hammer_s)]
+    plan = [(st, f) for st in UNASKED for f in fractions] + [("hammer", hammer_s)]
     trials = []
     for k, (target, frac) in enumerate(plan):
         ws = out / f"trial{k:02d}"
@@ -156,7 +156,7 @@ def kill_loop(out: Path, fractions: list[float], checkpoint_every: float, hammer
             runs += 1
             cmd = wgs_command(ws, scene, cfg, resume and runs > 1, checkpoint_every)
             if hammer and runs < 40:  # killed every hammer_s seconds after start; a clean finish after 40 kills
-                stage, delay = list(STAGE_DIRS)[0], frac
+                stage, delay = list(UNASKED)[0], frac
             elif runs == 1:
                 stage, delay = target, frac * stage_s[target]
             else:

@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from . import __version__
-from .config import REGISTRY, as_dict
+from .config import OUTPUTS, REGISTRY, as_dict
 from .errors import InputError, WgsError, WorkspaceLocked
 from .io import atomic_write_bytes, atomic_write_json, json_default, path_in
 from .resume import Checkpointer
@@ -39,6 +39,14 @@ COMMANDS: dict[str, str] = {s.name: s.command for s in REGISTRY}
 MANIFEST = "manifest.json"
 LOCK = ".wgs.lock"
 RESUME = ".resume"  # WS/.resume/<stage dir>/: staging folder `out/`, loop checkpoints `*.pt`, `fingerprint`
+
+
+def declared(stage: str, key: str) -> str:
+    """The path, inside its folder, of the output `key` that `stage` declares in the registry."""
+    try:
+        return OUTPUTS[stage][key]
+    except KeyError:
+        raise KeyError(f"stage {stage!r} declares no output {key!r} (config.REGISTRY)") from None
 
 
 def fingerprint(obj: Any) -> str:
@@ -68,6 +76,10 @@ class StageRun:
     def path(self, *parts: str) -> Path:
         return path_in(self.dir, *parts)
 
+    def output(self, key: str, *parts: str) -> Path:
+        """Where this stage writes its declared output `key` (`config.Stage.outputs`), parent created."""
+        return path_in(self.dir, declared(self.stage, key), *parts)
+
     def checkpointer(self, key: str) -> Checkpointer:
         return Checkpointer(self.dir.parent / f"{key}.pt", self.checkpoint_every, self.resume)
 
@@ -86,6 +98,10 @@ class Workspace:
 
     def stage_dir(self, stage: str) -> Path:
         return self.root / STAGE_DIRS[stage]
+
+    def output(self, stage: str, key: str, *parts: str) -> Path:
+        """A file or folder that `stage` declares as its output `key` (`config.Stage.outputs`)."""
+        return self.stage_dir(stage).joinpath(declared(stage, key), *parts)
 
     def resume_dir(self, stage: str) -> Path:
         return self.root / RESUME / STAGE_DIRS[stage]

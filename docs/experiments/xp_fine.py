@@ -7,7 +7,7 @@ from pathlib import Path
 
 import torch
 
-from wgs.config import CKPT, resolve
+from wgs.config import resolve
 from wgs.gaussians.splats import load_checkpoint
 from wgs.scene.dataset import load_prepared
 from wgs.stages import StageEnv, run_stage
@@ -18,7 +18,7 @@ from wgs.workspace import STAGE_DIRS, Workspace
 
 def test_psnr(ws: Workspace, stage: str) -> float:
     scene = load_prepared(ws.stage_dir("scene"), load_test_images=True)
-    splats = load_checkpoint(ws.stage_dir(stage) / CKPT, scene.norm)[0]
+    splats = load_checkpoint(ws.output(stage, "model"), scene.norm)[0]
     per = evaluate_model(splats, scene.test, torch.device("cpu"), background_for(scene), None)
     return sum(per["psnr"].values()) / len(per["psnr"])
 

@@ -60,7 +60,7 @@ if __name__ == "__main__":
                    pairs_path)
     p = torch.load(pairs_path)
     lc, lb = p["clean"], p["bad"]
-    oc, ob, _ = load_pairs(ws.stage_dir("mask_data"), "wavelet", 1)
+    oc, ob, _ = load_pairs(ws.output("mask_data", "index"), "wavelet", 1)
     print(f"pairs: LOO {lc.shape[0]}, ORM {oc.shape[0]}; LOO identity MSE {float((lc - lb).pow(2).mean()):.5f}",
           flush=True)
     gen = torch.Generator().manual_seed(0)

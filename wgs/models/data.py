@@ -6,7 +6,6 @@ from pathlib import Path
 
 import torch
 
-from ..config import INDEX
 from ..errors import InputError
 from ..io import read_json
 from ..wavelet.haar import dwt2
@@ -34,14 +33,15 @@ def hwc(a) -> torch.Tensor:
     return torch.from_numpy(a).permute(2, 0, 1).contiguous()
 
 
-def load_pairs(folder: Path, domain: str, levels: int = 1) -> tuple[torch.Tensor, torch.Tensor, list[dict]]:
+def load_pairs(index_path: Path, domain: str, levels: int = 1) -> tuple[torch.Tensor, torch.Tensor, list[dict]]:
     """Clean and corrupted images of every pair, [P, 3, h, w] each, in model space ([-1, 1]).
 
     wavelet: the LL subband at `levels` (level 1 from the stored LL pairs, deeper levels from the
-    stored RGB pairs); rgb: the images. `folder`: what `wgs mask-data` wrote (index.json, pairs/)."""
+    stored RGB pairs); rgb: the images. `index_path`: the index `wgs mask-data` wrote, its pair
+    files named relative to its folder."""
     from ..io.exr import read_subbands  # OpenImageIO only where pair files are read
 
-    index_path = folder / INDEX
+    folder = index_path.parent
     index = read_json(index_path)
     pairs = index.get("pairs", [])
     if not pairs:

@@ -16,7 +16,7 @@ import torch
 from ..config import PrepareConfig
 from ..errors import InputError
 from ..io import atomic_write_bytes, atomic_write_json, path_in
-from ..io.images import downscale, read_image, split_rgba, to_mask, write_png
+from ..io.images import downscale, find_with_stem, read_image, split_rgba, to_mask, write_png
 from .camera import Camera
 from .colmap import undistort, write_model
 from .convention import normalisation_from_cameras, orthonormalise, rotation_error, scale_intrinsics
@@ -25,6 +25,7 @@ from .splits import choose_split
 from .types import RawScene, View
 
 MASK_MIN_FRACTION = 1e-4  # a mask with less foreground than this is empty
+MASK_MODES = ("auto", "none")  # PrepareConfig.masks: these, or a folder of masks
 
 
 def scene_inputs_digest(scene: RawScene) -> str:
@@ -46,7 +47,22 @@ def load_scene_for_prepare(root: str | Path, cfg: PrepareConfig, sfm_model: Path
     for v in scene.views:
         _check_camera(v, scene)
     choose_split(scene, cfg.views, cfg.test_every)
+    if cfg.masks not in MASK_MODES:
+        _masks_from_folder(scene, Path(cfg.masks))
     return scene
+
+
+def _masks_from_folder(scene: RawScene, folder: Path) -> None:
+    """`--masks DIR`: every training and test view's mask from DIR, by the image's name or stem."""
+    if not folder.is_dir():
+        raise InputError("mask folder not found (--masks takes auto, none or a folder)", folder)
+    for i in scene.train + scene.test:
+        v = scene.views[i]
+        found = next((p for p in (find_with_stem(folder, Path(v.name).stem), find_with_stem(folder, _out_name(v)[:-4]))
+                      if p is not None), None)
+        if found is None:
+            raise InputError(f"no mask for {v.name} in the mask folder", folder)
+        v.mask = found
 
 
 def _check_camera(v: View, scene: RawScene) -> None:
@@ -103,21 +119,22 @@ def _load_view(v: View, cfg: PrepareConfig, root: Path) -> tuple[np.ndarray, np.
         rgb, mask = downscale(rgb, mask, k)
         K = scale_intrinsics(K, 1.0 / k, 1.0 / k)
     if mask is not None:
-        frac = float((mask > 0.5).mean())
-        where = v.mask or v.image
-        if frac < MASK_MIN_FRACTION:
-            raise InputError("mask is empty (no object pixels)", where)
-        if mask.min() > 0.5:
-            raise InputError("mask is all foreground (no background pixels): not a segmentation", where)
+        check_mask(mask, v.mask or v.image)
     return rgb, mask, K
+
+
+def check_mask(mask: np.ndarray, where: Path) -> None:
+    if float((mask > 0.5).mean()) < MASK_MIN_FRACTION:
+        raise InputError("mask is empty (no object pixels)", where)
+    if mask.min() > 0.5:
+        raise InputError("mask is all foreground (no background pixels): not a segmentation", where)
 
 
 def prepare(scene: RawScene, cfg: PrepareConfig, out: Path) -> dict[str, Any]:
     """Write the workspace scene folder for `scene` into the stage's staging folder."""
     ids = {"train": scene.train, "test": scene.test}
     norm = normalisation_from_cameras([scene.views[i].w2c for i in scene.train])
-    names, cameras, sizes = [], {}, []
-    has_mask: dict[str, bool] = {}
+    names, cameras, sizes, images, masks = [], {}, [], [], []
     used = set()
     for split in ("train", "test"):
         for i in ids[split]:
@@ -128,14 +145,35 @@ def prepare(scene: RawScene, cfg: PrepareConfig, out: Path) -> dict[str, Any]:
                 raise InputError(f"two images map to the same name {name}", v.image)
             used.add(name)
             write_png(path_in(out, "images", name), rgb)
-            if mask is not None:
-                write_png(path_in(out, "masks", name), mask)
-            has_mask[name] = mask is not None
+            images.append(rgb)
+            masks.append(mask)
             names.append(name)
             sizes.append((rgb.shape[1], rgb.shape[0]))
             cameras[name] = Camera(torch.from_numpy(np.asarray(K, dtype=np.float64)),
                                    torch.from_numpy(np.asarray(norm.w2c_to_normalised(v.w2c), dtype=np.float64)),
                                    *sizes[-1])
+    mask_info = {"source": "folder" if cfg.masks not in MASK_MODES else "given" if any(m is not None for m in masks)
+                 else cfg.masks}
+    if mask_info["source"] == "auto":
+        from ..segment.automask import automatic_masks, mask_sheet
+        from ..threads import thread_count
+
+        made = automatic_masks(images, [cameras[n] for n in names], cfg.mask_agreement, cfg.mask_model,
+                               thread_count(), MASK_MIN_FRACTION)
+        made.record["without_agreement"] = [names[k] for k in made.record["without_agreement"]]
+        empty = [n for n, m in zip(names, made.masks, strict=True) if m.mean() < MASK_MIN_FRACTION]
+        if empty:  # the network saw no object there: the scene goes on as one without masks
+            mask_info = {"source": "none", "auto_failed": f"the network found no object in {', '.join(empty)}",
+                         **made.record}
+        else:
+            masks, mask_info = made.masks, {"source": "auto", **made.record}
+            write_png(path_in(out, "masks_sheet.png"), mask_sheet(images[: len(scene.train)],
+                                                                 masks[: len(scene.train)]))
+    has_mask: dict[str, bool] = {}
+    for name, mask in zip(names, masks, strict=True):
+        if mask is not None:
+            write_png(path_in(out, "masks", name), mask)
+        has_mask[name] = mask is not None
     train_names = names[: len(scene.train)]
     test_names = names[len(scene.train):]
     masked = [has_mask[n] for n in train_names]
@@ -156,6 +194,7 @@ def prepare(scene: RawScene, cfg: PrepareConfig, out: Path) -> dict[str, Any]:
         "resolution": list(res[0]) if len(res) == 1 else [list(r) for r in res],
         "downscale": cfg.downscale,
         "has_masks": bool(all(masked)),
+        "masks": mask_info,
         "normalisation": norm.to_json(),
         "notes": scene.notes,
     }

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import torch
 
-from ..config import CKPT
 from ..errors import InputError
 from ..gaussians.splats import load_checkpoint
 from ..gaussians.trainer import render_frame
@@ -15,16 +14,13 @@ from ..scene.orbit import orbit_frames
 from ..workspace import Workspace
 from .shared import background_for
 
-STAGE_CKPT = {"coarse": ("coarse", CKPT), "fine": ("fine", CKPT)}
-
 
 def run_render(ws: Workspace, stage: str, views: str, n_frames: int, device: torch.device,
                video: bool = False) -> None:
-    src, ckpt = STAGE_CKPT[stage]
-    if ws.manifest(src) is None:
-        raise InputError(f"stage '{stage}' has not run yet", ws.stage_dir(src))
-    scene = load_prepared(ws.stage_dir("scene"))
-    splats, _ = load_checkpoint(ws.stage_dir(src) / ckpt, scene.norm, device)
+    if ws.manifest(stage) is None:
+        raise InputError(f"stage '{stage}' has not run yet", ws.stage_dir(stage))
+    scene = load_prepared(ws.output("scene", "prepared"))
+    splats, _ = load_checkpoint(ws.output(stage, "model"), scene.norm, device)
     frames = {"train": scene.train, "test": scene.test, "path": orbit_frames(scene.train, n_frames)}[views]
     out = ws.root / "renders" / f"{stage}_{views}"
     bg = background_for(scene)

@@ -66,6 +66,22 @@ def run_prepare(ws: Workspace, cfg: PrepareConfig, env: StageEnv, force: bool = 
     return ws.run_stage("scene", cfg, extra, force, lambda run: import_scene(run, ws, scene_dir, scene, cfg, force))
 
 
+def mask_line(masks: dict, sheet: Path) -> str:
+    """Which masks the scene uses, in one line."""
+    if masks["source"] == "auto":
+        m = masks["model"]
+        return (f"masks: automatic ({m['package'] or m['file']}{' ' + m['version'] if m['version'] else ''}, "
+                f"agreement between views cut {100 * masks['cut_by_agreement']['mean']:.1f} % of the network's "
+                f"object area, {masks['seconds_per_photo']:.1f} s per photo"
+                + (f"; the other views support nothing of {', '.join(masks['without_agreement'])}: the network's own"
+                   if masks["without_agreement"] else "")
+                + f"); check them in {sheet}, correct them with --masks DIR")
+    if "auto_failed" in masks:
+        return f"masks: none ({masks['auto_failed']}; --masks DIR takes yours)"
+    return {"given": "masks: the scene's own", "folder": "masks: from the --masks folder",
+            "none": "masks: none (--masks none)"}[masks["source"]]
+
+
 def import_scene(run: StageRun, ws: Workspace, scene_dir: Path, scene: RawScene, cfg: PrepareConfig, force: bool
                  ) -> str:
     held = ((ws.manifest("scene") or {}).get("summary") or {}).get("source")
@@ -76,8 +92,10 @@ def import_scene(run: StageRun, ws: Workspace, scene_dir: Path, scene: RawScene,
         log(f"  note: {note}")
     log(f"prepare: {scene.format} scene, {len(scene.train)} training + {len(scene.test)} test views")
     info = prepare(scene, cfg, run.dir)
+    log(mask_line(info["masks"], ws.output("scene", "masks_sheet")))
     run.record["summary"] = {
         "source": info["source"], "format": info["format"], "num_train": len(info["train_names"]),
         "num_test": len(info["test_names"]), "resolution": info["resolution"], "has_masks": info["has_masks"],
+        "masks": info["masks"],
     }
     return f"prepare: wrote {ws.stage_dir('scene')}"

@@ -8,8 +8,8 @@ import contextlib
 
 import torch
 
-from ..config import CKPT, PLY, CoarseConfig
-from ..curves import CURVE, test_probe, write_curve
+from ..config import CoarseConfig
+from ..curves import test_probe, write_curve
 from ..gaussians.splats import VIEWER_SH_DEGREE, Splats, export_ply, save_checkpoint, to_world
 from ..gaussians.trainer import TrainResult, render_frame, train_gaussians
 from ..io import atomic_write_json
@@ -22,7 +22,7 @@ from ..scene.dataset import PreparedScene, composite, load_prepared
 from ..threads import configured_count, map_in_processes
 from ..workspace import StageRun, Workspace
 from . import StageEnv
-from .shared import background_for, initial_splats, member_checkpoint, subbands_hwc
+from .shared import background_for, initial_splats, member_file, subbands_hwc
 
 
 def write_coarse_outputs(run: StageRun, scene: PreparedScene, splats: Splats, device: torch.device) -> dict:
@@ -33,8 +33,8 @@ def write_coarse_outputs(run: StageRun, scene: PreparedScene, splats: Splats, de
         rgb, _ = render_frame(splats, f, device, bg)
         write_png(run.path("renders", f.name), rgb.numpy())
         stem = f.name.rsplit(".", 1)[0]
-        write_subbands(run.path("subbands", "ref", f"{stem}.exr"), subbands_hwc(ref))
-        write_subbands(run.path("subbands", "render", f"{stem}.exr"), subbands_hwc(rgb))
+        write_subbands(run.output("subbands", "ref", f"{stem}.exr"), subbands_hwc(ref))
+        write_subbands(run.output("subbands", "render", f"{stem}.exr"), subbands_hwc(rgb))
         per_view[f.name] = psnr(rgb, ref)
     return per_view
 
@@ -48,7 +48,7 @@ def train_model(ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: in
                 checkpoint: Checkpointer, probe: bool) -> tuple[TrainResult, list[str]]:
     """One coarse model from `seed` (with the test probe: G_c); its result and the probe's views.
     Module level so that a spawned process can run it."""
-    scene = load_prepared(ws.stage_dir("scene"))
+    scene = load_prepared(ws.output("scene", "prepared"))
     torch.manual_seed(seed)
     test, names = test_probe(ws, scene, cfg, background_for(scene), device) if probe else (None, [])
     res = train_gaussians(initial_splats(scene, cfg, seed), scene.train, cfg, device, extent=1.0, desc=desc,
@@ -71,7 +71,7 @@ def side_by_side(cfg: CoarseConfig, device: torch.device, pixels: int) -> int:
 
 
 def train_coarse(run: StageRun, ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: int) -> str:
-    scene = load_prepared(ws.stage_dir("scene"))
+    scene = load_prepared(ws.output("scene", "prepared"))
     workers = side_by_side(cfg, device, scene.train[0].width * scene.train[0].height)
     log(f"coarse: {cfg.ensemble} model(s) from seeds {seed}..{seed + cfg.ensemble - 1}, {len(scene.train)} views, "
         f"{cfg.iterations} iterations on {device}" + (f", {workers} side by side" if workers > 1 else ""))
@@ -85,14 +85,14 @@ def train_coarse(run: StageRun, ws: Workspace, cfg: CoarseConfig, device: torch.
             if i == 0:
                 probe_names = names
             else:
-                save_checkpoint(run.path(member_checkpoint(i)), res.splats, scene.norm, res.iterations)
+                save_checkpoint(run.output("members", member_file(i)), res.splats, scene.norm, res.iterations)
             if bar is not None:
                 bar.update(bar.task_ids[0], advance=1, status=f"seed {seed + i}: {res.seconds:.0f} s")
     res = results[0]
     if res.curve:
-        write_curve(run.path(CURVE), res, probe_names)
-    save_checkpoint(run.path(CKPT), res.splats, scene.norm, res.iterations)
-    n_ply = export_ply(run.path(PLY), to_world(res.splats, scene.norm), VIEWER_SH_DEGREE)
+        write_curve(run.output("curve"), res, probe_names)
+    save_checkpoint(run.output("model"), res.splats, scene.norm, res.iterations)
+    n_ply = export_ply(run.output("ply"), to_world(res.splats, scene.norm), VIEWER_SH_DEGREE)
     per_view = write_coarse_outputs(run, scene, res.splats, device)
     atomic_write_json(run.path("train_psnr.json"), per_view)
     mean_psnr = sum(per_view.values()) / len(per_view)

@@ -15,7 +15,7 @@ from typing import Any
 
 import torch
 
-from ..config import INDEX, MaskDataConfig
+from ..config import MaskDataConfig
 from ..errors import InputError
 from ..gaussians.splats import Splats
 from ..gaussians.trainer import render_frame, train_gaussians
@@ -23,9 +23,9 @@ from ..io import atomic_write_json, read_json
 from ..io.exr import write_subbands
 from ..masking import make_region_masks
 from ..scene.dataset import PreparedScene, composite, load_prepared
-from ..workspace import STAGE_DIRS, StageRun, Workspace
+from ..workspace import StageRun, Workspace
 from . import StageEnv
-from .shared import background_for, initial_splats, subbands_hwc
+from .shared import background_for, initial_splats, subband_file, subbands_hwc
 
 
 class PairWriter:
@@ -102,18 +102,13 @@ def run_loo(cfg: MaskDataConfig, scene: PreparedScene, device: torch.device, see
     return {"models": n, "iterations": cfg.iterations * n}
 
 
-def hf_pairs(ws: Workspace, scene: PreparedScene) -> list[dict[str, str]]:
-    coarse = STAGE_DIRS["coarse"]
-    out = []
+def hf_views(ws: Workspace, scene: PreparedScene) -> list[str]:
+    """The training views whose coarse render and reference subbands (coarse's `subbands`) train U."""
     for f in scene.train:
-        stem = f.name.rsplit(".", 1)[0]
-        out.append({"view": f.name, "render": f"{coarse}/subbands/render/{stem}.exr",
-                    "ref": f"{coarse}/subbands/ref/{stem}.exr"})
-    for p in out:
-        for k in ("render", "ref"):
-            if not (ws.root / p[k]).is_file():
-                raise InputError("coarse subband file missing: rerun `wgs coarse --force`", ws.root / p[k])
-    return out
+        for kind in ("render", "ref"):
+            if not (p := subband_file(ws, kind, f.name)).is_file():
+                raise InputError("coarse subband file missing: rerun `wgs coarse --force`", p)
+    return [f.name for f in scene.train]
 
 
 def run_mask_data(ws: Workspace, cfg: MaskDataConfig, env: StageEnv, force: bool = False) -> bool:
@@ -122,14 +117,14 @@ def run_mask_data(ws: Workspace, cfg: MaskDataConfig, env: StageEnv, force: bool
 
 
 def make_pairs(run: StageRun, ws: Workspace, cfg: MaskDataConfig, device: torch.device, seed: int) -> str:
-    scene = load_prepared(ws.stage_dir("scene"))
+    scene = load_prepared(ws.output("scene", "prepared"))
     torch.manual_seed(seed)
     writer = PairWriter(run, scene, device, cfg.strategy)
     t0 = time.perf_counter()
     stats = (run_loo if cfg.strategy == "loo" else run_orm)(cfg, scene, device, seed, writer)
     seconds = time.perf_counter() - t0
-    atomic_write_json(run.path(INDEX), {"strategy": cfg.strategy, "pairs": writer.pairs,
-                                        "hf_pairs": hf_pairs(ws, scene)})
+    atomic_write_json(run.output("index"), {"strategy": cfg.strategy, "pairs": writer.pairs,
+                                        "hf_views": hf_views(ws, scene)})
     run.record.update({"strategy": cfg.strategy, "num_pairs": len(writer.pairs),
                        "strategy_seconds": round(seconds, 2), **stats})
     return f"mask-data: {cfg.strategy}, {len(writer.pairs)} pairs from {stats['models']} model(s) in {seconds:.1f} s"

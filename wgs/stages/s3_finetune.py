@@ -10,7 +10,7 @@ from typing import Any
 
 import torch
 
-from ..config import INDEX, FinetuneConfig
+from ..config import FinetuneConfig
 from ..errors import InputError
 from ..io import atomic_write_json, read_json
 from ..io.exr import read_subbands
@@ -32,6 +32,7 @@ from ..training.loop import FitPlan, FitState
 from ..wavelet.haar import idwt2
 from ..workspace import StageRun, Workspace
 from . import StageEnv
+from .shared import subband_file
 
 
 def split_holdout(n: int, frac: float, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
@@ -74,18 +75,17 @@ def train_scratch_d(cfg: FinetuneConfig, clean: torch.Tensor, bad: torch.Tensor,
 
 def load_hf_data(ws: Workspace) -> tuple[torch.Tensor, torch.Tensor, list[str]]:
     """Coarse renders and references of the training views as images [V, 3, H, W] (from their subbands)."""
-    index = read_json(ws.stage_dir("mask_data") / INDEX)
-    renders, refs, names = [], [], []
-    for p in index["hf_pairs"]:
+    names = read_json(ws.output("mask_data", "index"))["hf_views"]
+    renders, refs = [], []
+    for name in names:
         imgs = []
-        for key in ("render", "ref"):
-            b = read_subbands(ws.root / p[key])
+        for kind in ("render", "ref"):
+            b = read_subbands(subband_file(ws, kind, name))
             ll = hwc(b["LL"])[None]
             hi = [(hwc(b["LH"])[None], hwc(b["HL"])[None], hwc(b["HH"])[None])]
             imgs.append(idwt2(ll, hi)[0])
         renders.append(imgs[0])
         refs.append(imgs[1])
-        names.append(p["view"])
     return torch.stack(renders), torch.stack(refs), names
 
 
@@ -210,7 +210,7 @@ def finetune(run: StageRun, ws: Workspace, cfg: FinetuneConfig, device: torch.de
     torch.manual_seed(seed)
     if cfg.levels < 1:
         raise InputError(f"levels must be >= 1, got {cfg.levels}")
-    clean, bad, pairs = load_pairs(ws.stage_dir("mask_data"), cfg.domain, cfg.levels)
+    clean, bad, pairs = load_pairs(ws.output("mask_data", "index"), cfg.domain, cfg.levels)
     train_ids, held = split_holdout(clean.shape[0], cfg.holdout, gen)
     record = train_and_save(run, ws, cfg, clean, bad, train_ids, held, device, gen)
     run.record.update(record)

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..config import CARVED_HULL, SILHOUETTES, VIEWS, RepairConfig
+from ..config import OUTPUTS, RepairConfig
 from ..gaussians.trainer import render_frame
 from ..io import atomic_write_json
 from ..io.exr import write_subbands
@@ -92,9 +92,9 @@ def run_repair(ws: Workspace, cfg: RepairConfig, env: StageEnv, force: bool = Fa
 
 def repair_views(run: StageRun, ws: Workspace, cfg: RepairConfig, device: torch.device, seed: int) -> str:
     t0 = time.perf_counter()
-    scene = load_prepared(ws.stage_dir("scene"))
+    scene = load_prepared(ws.output("scene", "prepared"))
     members = coarse_members(ws, scene, device)
-    repairer = load_repairer(ws.stage_dir("finetune"), cfg, device, seed)
+    repairer = load_repairer(ws.output("finetune", "models"), cfg, device, seed)
     domain, U = repairer.meta.domain, repairer.U
     if cfg.poses == "sphere":
         views = sphere_views(scene.train, cfg.num_views, cfg.band_below, cfg.band_above)
@@ -114,12 +114,12 @@ def repair_views(run: StageRun, ws: Workspace, cfg: RepairConfig, device: torch.
         if shape is not None:  # where the object may be: all but what S is sure is background
             probs.append(shape.predict(frame, first, alpha))
             may_be = (~sure_background(probs[-1], cfg)).float()
-            write_png(run.path(SILHOUETTES, frame.name), may_be[..., None].expand(-1, -1, 3).numpy())
-            extra["silhouette"] = f"{SILHOUETTES}/{frame.name}"
+            write_png(run.output("silhouettes", frame.name), may_be[..., None].expand(-1, -1, 3).numpy())
+            extra["silhouette"] = f"{OUTPUTS['repair']['silhouettes']}/{frame.name}"
         write_subbands(run.path("corrupted", f"{stem}.exr"), bands_in)
         write_subbands(run.path("repaired", f"{stem}.exr"), bands_out)
-        write_subbands(run.path("pseudo", f"{stem}.exr"), {"RGB": fixed.numpy()}, half=False)
-        write_png(run.path("pseudo", frame.name), fixed.numpy())
+        write_subbands(run.output("pseudo", f"{stem}.exr"), {"RGB": fixed.numpy()}, half=False)
+        write_png(run.output("pseudo", frame.name), fixed.numpy())
         rows.append((render, fixed))
         listing.append({"name": frame.name, **frame.to_json(), "distance": dist,
                         "weight": min(1.0, 2.0 * dist / d_max) if d_max > 0 else 1.0, **extra})
@@ -127,12 +127,12 @@ def repair_views(run: StageRun, ws: Workspace, cfg: RepairConfig, device: torch.
         around = [f for f, _ in sphere_views(scene.train, cfg.carve_views, 180.0, 180.0)]
         probs += [shape.predict(f, *render_frame(members[0], f, device, bg)) for f in around]
         carved, counts = carve(shape.grid, [f for f, _ in views] + around, probs, scene.train, cfg)
-        save_grid(run.path(CARVED_HULL), carved)
+        save_grid(run.output("carved_hull"), carved)
         run.record["carving"] = counts
         log(f"repair: S carved {counts['carved'] - counts['restored']} of the hull's {counts['voxels']} voxels "
             f"({counts['restored']} kept for the real masks)")
-    write_png(run.path("contact_sheet.png"), contact_sheet(rows))
-    atomic_write_json(run.path(VIEWS), {"domain": domain, "used_u": U is not None, "views": listing})
+    write_png(run.output("contact_sheet"), contact_sheet(rows))
+    atomic_write_json(run.output("views"), {"domain": domain, "used_u": U is not None, "views": listing})
     seconds = time.perf_counter() - t0
     run.record.update({"num_views": len(listing), "domain": domain, "used_u": U is not None,
                        "ensemble": len(members), "seconds": round(seconds, 2)})

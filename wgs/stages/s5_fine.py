@@ -6,8 +6,8 @@ import dataclasses
 
 import torch
 
-from ..config import CARVED_HULL, CKPT, PLY, VIEWS, FineConfig
-from ..curves import CURVE, test_probe, write_curve
+from ..config import FineConfig
+from ..curves import test_probe, write_curve
 from ..gaussians.splats import VIEWER_SH_DEGREE, Splats, export_ply, load_checkpoint, save_checkpoint, to_world
 from ..gaussians.trainer import PseudoViews, train_gaussians
 from ..io import read_json
@@ -37,11 +37,11 @@ def pseudo_schedule(cfg: FineConfig):
 def load_pseudo_views(ws: Workspace) -> tuple[list[Frame], list[float]]:
     """The repair stage's pseudo frames (image, and where S ran the mask of where the object may
     be) and their weights."""
-    d = ws.stage_dir("repair")
-    listing = read_json(d / VIEWS)
+    listing = read_json(ws.output("repair", "views"))
+    d = ws.stage_dir("repair")  # the listing names its files relative to the stage folder
     frames, weights = [], []
     for v in listing["views"]:
-        img = read_subbands(d / "pseudo" / f"{v['name'].rsplit('.', 1)[0]}.exr")["RGB"]
+        img = read_subbands(ws.output("repair", "pseudo", f"{v['name'].rsplit('.', 1)[0]}.exr"))["RGB"]
         cam = Camera.from_json(v)
         mask = torch.from_numpy(read_image(d / v["silhouette"])[..., 0].copy()) if "silhouette" in v else None
         frames.append(Frame(cam.K, cam.viewmat, cam.width, cam.height, name=v["name"], image=torch.from_numpy(img),
@@ -85,11 +85,11 @@ def starting_splats(ws: Workspace, scene: PreparedScene, cfg: FineConfig, seed: 
     """The Gaussians the fine stage trains: the visual-hull init or G_c, and which it is."""
     start = start_of(cfg, scene.has_masks)
     if start == "hull":
-        carved = ws.stage_dir("repair") / CARVED_HULL
+        carved = ws.output("repair", "carved_hull")
         if carved.is_file():
             return initial_splats(scene, cfg, seed, load_grid(carved)), "carved hull"
         return initial_splats(scene, cfg, seed), start
-    return load_checkpoint(ws.stage_dir("coarse") / CKPT, scene.norm)[0], start
+    return load_checkpoint(ws.output("coarse", "model"), scene.norm)[0], start
 
 
 def run_fine(ws: Workspace, cfg: FineConfig, env: StageEnv, force: bool = False) -> bool:
@@ -98,7 +98,7 @@ def run_fine(ws: Workspace, cfg: FineConfig, env: StageEnv, force: bool = False)
 
 
 def train_fine(run: StageRun, ws: Workspace, cfg: FineConfig, device: torch.device, seed: int) -> str:
-    scene = load_prepared(ws.stage_dir("scene"))
+    scene = load_prepared(ws.output("scene", "prepared"))
     splats, start = starting_splats(ws, scene, cfg, seed)
     frames, weights = load_pseudo_views(ws)
     bg = background_for(scene)
@@ -120,9 +120,9 @@ def train_fine(run: StageRun, ws: Workspace, cfg: FineConfig, device: torch.devi
         probe_s += res.probe_seconds
         offset += res.seconds
     if probe is not None:
-        write_curve(run.path(CURVE), dataclasses.replace(res, curve=curve, probe_seconds=probe_s), probe_names)
-    save_checkpoint(run.path(CKPT), res.splats, scene.norm, res.iterations)
-    n = export_ply(run.path(PLY), to_world(res.splats, scene.norm), VIEWER_SH_DEGREE)
+        write_curve(run.output("curve"), dataclasses.replace(res, curve=curve, probe_seconds=probe_s), probe_names)
+    save_checkpoint(run.output("model"), res.splats, scene.norm, res.iterations)
+    n = export_ply(run.output("ply"), to_world(res.splats, scene.norm), VIEWER_SH_DEGREE)
     run.record.update({"num_gaussians": n, "iterations": res.iterations, "num_pseudo": len(frames),
                        "rounds": max(1, cfg.rounds), "start": start, "lpips_term": lpips_term,
                        "train_seconds": round(res.seconds, 2), "final_loss": res.losses[-1], "seed": seed})

@@ -12,11 +12,11 @@ from typing import Any
 import torch
 
 from .. import __version__
-from ..config import CKPT, METHOD, RESULTS, CoarseConfig, EvalConfig
-from ..curves import CURVE, read_curve, test_probe, write_curve
+from ..config import EvalConfig
+from ..curves import read_curve
 from ..errors import InputError
-from ..gaussians.splats import load_checkpoint, save_checkpoint
-from ..gaussians.trainer import render_frame, train_gaussians
+from ..gaussians.splats import load_checkpoint
+from ..gaussians.trainer import render_frame
 from ..io import atomic_write_bytes, atomic_write_json
 from ..io.images import write_gif, write_png
 from ..lpips import LPIPS, LpipsUnavailable
@@ -27,14 +27,13 @@ from ..scene.dataset import Frame, composite, load_prepared
 from ..scene.orbit import orbit_frames
 from ..shape.hull import silhouette, visual_hull_grid
 from ..shape.scores import SILHOUETTE_DOC, leave_one_out, mean_scores, silhouette_scores
-from ..workspace import STAGE_DIRS, StageRun, Workspace
+from ..workspace import StageRun, Workspace
 from . import StageEnv
 from .shared import (
     background_for,
     coarse_members,
     ensemble_repair,
-    initial_splats,
-    plain_3dgs_config,
+    stage_times,
     workspace_repairer,
 )
 
@@ -137,6 +136,14 @@ def shape_reference(scene, frames: list[Frame], resolution: int) -> dict[str, An
             "hull_test_per_view": test, "leave_one_out_per_view": loo}
 
 
+def masks_note(scene) -> str | None:
+    """Where the test masks came from, when wgs made them: the truth is composited with them."""
+    if (scene.info.get("masks") or {}).get("source") != "auto":
+        return None
+    return ("The masks are automatic (`wgs prepare --masks auto`): the test views' ground truth is composited "
+            "with them, so these scores measure against wgs's own idea of the object's outline.")
+
+
 def shape_line(coarse: dict, fine: dict, shape: dict) -> str:
     """One line of silhouette IoUs: hull, G_c and G_f at the test views, and the leave-one-out estimate."""
     parts = []
@@ -150,21 +157,9 @@ def shape_line(coarse: dict, fine: dict, shape: dict) -> str:
                                           f"each training camera) {loo['iou']:.3f}")
 
 
-def stage_times(ws: Workspace) -> list[dict[str, Any]]:
-    rows, cum = [], 0.0
-    for st in METHOD:
-        m = ws.manifest(st)
-        if m is None:
-            continue
-        cum += m.get("wall_time_s", 0.0)
-        rows.append({"stage": st, "wall_time_s": m.get("wall_time_s", 0.0), "cumulative_s": round(cum, 2),
-                     "peak_memory_mb": m.get("peak_memory_mb")})
-    return rows
-
-
 def write_report(run: StageRun, times: list[dict[str, Any]], coarse: dict, fine: dict, eval_s: float,
                  lpips_note: str | None, curves: dict[str, list[tuple[float, float]]] | None = None,
-                 baseline: dict | None = None, shape: dict | None = None) -> None:
+                 baseline: dict | None = None, shape: dict | None = None, masks_note: str | None = None) -> None:
     total = (times[-1]["cumulative_s"] if times else 0.0) + eval_s
     lines = ["# wgs report: error against run time", "",
              "| stage | wall time (s) | cumulative (s) | peak memory (MiB) | PSNR | SSIM | LPIPS | silhouette IoU |",
@@ -181,26 +176,28 @@ def write_report(run: StageRun, times: list[dict[str, Any]], coarse: dict, fine:
     if shape is not None:
         lines += [shape_line(coarse, fine, shape) + ".",
                   SILHOUETTE_DOC[0].upper() + SILHOUETTE_DOC[1:] + ".", ""]
+    if masks_note:
+        lines += [masks_note, ""]
     if lpips_note:
         lines += [f"LPIPS not computed: {lpips_note}", ""]
-    atomic_write_bytes(run.path("report.md"), "\n".join(lines).encode())
+    atomic_write_bytes(run.output("report"), "\n".join(lines).encode())
     plot_error_vs_time(run.path("error_vs_time.png"), times, coarse, fine, curves, baseline)
 
 
-def curve_points(ws: Workspace, times: list[dict[str, Any]], baseline: Path | None = None
+def curve_points(ws: Workspace, times: list[dict[str, Any]], baseline: bool = False
                  ) -> dict[str, list[tuple[float, float]]]:
-    """Each training stage's probe curve as (cumulative wall time s, test PSNR) from its curve.json;
-    a stage's points start where the stage started; the plain-3DGS baseline's (`baseline`: its
-    curve.json) where coarse did."""
+    """Each training stage's probe curve as (cumulative wall time s, test PSNR) from its curve
+    output; a stage's points start where the stage started, the plain-3DGS baseline's (`baseline`:
+    include it) where coarse did."""
     start = {r["stage"]: r["cumulative_s"] - r["wall_time_s"] for r in times}
     out = {}
-    for stage in ("coarse", "fine"):
-        c = read_curve(ws.stage_dir(stage) / CURVE)
-        if c and stage in start:
-            out[stage] = [(start[stage] + p["seconds"], p["psnr"]) for p in c["points"]]
-    c = read_curve(baseline) if baseline is not None else None
-    if c and "coarse" in start:
-        out["plain 3DGS"] = [(start["coarse"] + p["seconds"], p["psnr"]) for p in c["points"]]
+    curves = [("coarse", "coarse", "coarse"), ("fine", "fine", "fine")]
+    if baseline:
+        curves.append(("baseline", "plain 3DGS", "coarse"))
+    for stage, label, at in curves:
+        c = read_curve(ws.output(stage, "curve")) if ws.manifest(stage) is not None else None
+        if c and at in start:
+            out[label] = [(start[at] + p["seconds"], p["psnr"]) for p in c["points"]]
     return out
 
 
@@ -269,36 +266,16 @@ def write_html(run: StageRun, ws: Workspace, frames, bg, pers: dict, results: di
         notes.append(f"Plain 3DGS for the same training time ({b['train_seconds']:.0f} s, no repair): PSNR "
                      f"{fmt(b['psnr'], 2)} dB, SSIM {fmt(b['ssim'])} "
                      f"(final model: {fmt(results['fine']['psnr'], 2)} dB).")
+    if results.get("masks_note"):
+        notes.append(results["masks_note"])
     if lpips_note:
         notes.append(f"LPIPS not computed: {lpips_note}")
-    contact = ws.stage_dir("repair") / "contact_sheet.png"
-    write_report_html(run.path("report.html"), title=f"wgs report: {ws.root.name}", times=stage_times(ws),
+    contact = ws.output("repair", "contact_sheet")
+    write_report_html(run.output("report_html"), title=f"wgs report: {ws.root.name}", times=stage_times(ws),
                       coarse=results["coarse"], fine=results["fine"], per_fine=per_fine,
                       per_coarse=pers.get("coarse", {}), sheets=sheets, plot=run.path("error_vs_time.png"),
                       contact_sheet=contact if contact.is_file() else None, notes=notes,
                       turntable=run.path("turntable.gif"), outlines=outlines)
-
-
-def train_baseline(run: StageRun, ws: Workspace, scene, times: list[dict[str, Any]], device: torch.device,
-                   seed: int) -> tuple[Any, dict[str, Any]]:
-    """Plain 3DGS: the coarse stage's trainer and settings, no repair, for the training time the
-    pipeline took (coarse .. fine), with its curve. Returns its splats and a record."""
-    base = CoarseConfig(**{k: v for k, v in ((ws.manifest("coarse") or {}).get("config") or {}).items()
-                           if k in CoarseConfig.__dataclass_fields__})
-    budget = sum(r["wall_time_s"] for r in times if r["stage"] != "scene")
-    # G_c's own training time (the coarse stage also trains the ensemble's other members)
-    coarse_s = (ws.manifest("coarse") or {}).get("train_seconds") or next(
-        (r["wall_time_s"] for r in times if r["stage"] == "coarse"), budget)
-    cfg = plain_3dgs_config(base, budget, coarse_s)
-    probe, names = test_probe(ws, scene, cfg, background_for(scene), device)
-    res = train_gaussians(initial_splats(scene, cfg, seed), scene.train, cfg, device, extent=1.0,
-                          desc="eval: plain 3DGS baseline", seed=seed, has_masks=scene.has_masks,
-                          checkpoint=run.checkpointer("baseline"), probe=probe)
-    save_checkpoint(run.path("baseline", CKPT), res.splats, scene.norm, res.iterations)
-    if probe is not None:
-        write_curve(run.path("baseline", CURVE), res, names)
-    return res.splats, {"budget_s": round(budget, 1), "train_seconds": round(res.seconds, 1),
-                        "iterations": res.iterations}
 
 
 def run_eval(ws: Workspace, cfg: EvalConfig, env: StageEnv, force: bool = False) -> bool:
@@ -309,7 +286,7 @@ def run_eval(ws: Workspace, cfg: EvalConfig, env: StageEnv, force: bool = False)
 
 
 def evaluate(run: StageRun, ws: Workspace, cfg: EvalConfig, device: torch.device, final: str, seed: int) -> str:
-    scene = load_prepared(ws.stage_dir("scene"), load_test_images=True)
+    scene = load_prepared(ws.output("scene", "prepared"), load_test_images=True)
     if not scene.test:
         raise InputError("the scene has no test views: nothing to evaluate", ws.stage_dir("scene"))
     frames = scene.test[: cfg.max_views] if cfg.max_views else scene.test
@@ -332,7 +309,7 @@ def evaluate(run: StageRun, ws: Workspace, cfg: EvalConfig, device: torch.device
             names = {f.name for f in spread(frames, cfg.repair_gain_views)}
             splats, repair_gain = members[0], RepairGain(ws, members, device, bg, seed, names)
         else:
-            splats, _ = load_checkpoint(ws.stage_dir(st) / CKPT, scene.norm, device)
+            splats, _ = load_checkpoint(ws.output(st, "model"), scene.norm, device)
         out = run.path("renders", "x").parent if key == "fine" else None
         outlines = run.path("outlines", "x").parent if key == "fine" else None
         per = evaluate_model(splats, frames, device, bg, lpips_fn, out, on_view=repair_gain, outline_dir=outlines,
@@ -347,18 +324,21 @@ def evaluate(run: StageRun, ws: Workspace, cfg: EvalConfig, device: torch.device
             gain = repair_gain.summary()
             atomic_write_json(run.path("per_view_repair.json"), {"render": repair_gain.before,
                                                                   "repaired": repair_gain.after})
-    if cfg.baseline:
-        b_splats, b_record = train_baseline(run, ws, scene, stage_times(ws), device, seed)
+    if ws.status("baseline") == "stale":
+        log("eval: the plain-3DGS baseline belongs to earlier stages and is left out (`wgs baseline` trains it again)")
+    if ws.status("baseline") == "fresh":
+        b = ws.manifest("baseline")
+        b_splats, _ = load_checkpoint(ws.output("baseline", "model"), scene.norm, device)
         per = evaluate_model(b_splats, frames, device, bg, lpips_fn, desc="eval baseline")
-        results["baseline_3dgs"] = {**summarise(per), **b_record,
-                                    "num_gaussians": int(b_splats["means"].shape[0])}
+        results["baseline_3dgs"] = {**summarise(per), "num_gaussians": int(b_splats["means"].shape[0]),
+                                    **{k: b[k] for k in ("budget_s", "train_seconds", "iterations")}}
     shape = shape_reference(scene, frames, cfg.hull_resolution)
     if shape is not None:
         atomic_write_json(run.path("per_view_shape.json"), {k: shape.pop(f"{k}_per_view")
                                                              for k in ("hull_test", "leave_one_out")})
     res = {**results["fine"], "final_model": final, "coarse": results["coarse"],
            "baseline_3dgs": results.get("baseline_3dgs"),
-           "repair_gain": gain, "shape": shape,
+           "repair_gain": gain, "shape": shape, "masks_note": masks_note(scene),
            "lpips_net": cfg.lpips_net if lpips_fn else None,
            "lpips_unavailable": lpips_note, "metrics": METRICS_DOC,
            "lpips_weights": lpips_fn.sources if lpips_fn else None,
@@ -368,18 +348,19 @@ def evaluate(run: StageRun, ws: Workspace, cfg: EvalConfig, device: torch.device
                 "version": __version__, "seed": seed,
                 # the nerfstudio `ns-eval` layout, for tools that read it
                 "experiment_name": Path(str(source)).name if source else ws.root.name,
-                "method_name": "wgs", "checkpoint": str(ws.stage_dir(final) / CKPT),
+                "method_name": "wgs", "checkpoint": str(ws.output(final, "model")),
                 "results": {k: results["fine"][k] for k in ("psnr", "psnr_std", "ssim", "ssim_std",
                                                             "lpips", "lpips_std") if k in results["fine"]}})
     # what error_vs_time.png shows: (cumulative s, probe-view PSNR) per training loop
-    res["curves"] = curve_points(ws, stage_times(ws), run.path("baseline", CURVE) if cfg.baseline else None)
-    atomic_write_json(run.path(RESULTS), res)
+    res["curves"] = curve_points(ws, stage_times(ws), "baseline_3dgs" in results)
+    atomic_write_json(run.output("results"), res)
     write_report(run, stage_times(ws), results["coarse"], results["fine"], time.perf_counter() - t0,
-                 lpips_note, res["curves"], results.get("baseline_3dgs"), shape)
+                 lpips_note, res["curves"], results.get("baseline_3dgs"), shape, res["masks_note"])
     if cfg.turntable_frames > 0:
         write_gif(run.path("turntable.gif"), [render_frame(final_splats, f, device, bg)[0].numpy()
                                               for f in orbit_frames(scene.train, cfg.turntable_frames)])
-    write_html(run, ws, frames, bg, pers, {**results, "shape": shape}, time.perf_counter() - t0, lpips_note, gain)
+    write_html(run, ws, frames, bg, pers, {**results, "shape": shape, "masks_note": res["masks_note"]},
+               time.perf_counter() - t0, lpips_note, gain)
     run.record.update({"psnr": res["psnr"], "ssim": res["ssim"], "lpips": res["lpips"],
                        "coarse_psnr": results["coarse"]["psnr"]})
     c, f = results["coarse"], results["fine"]
@@ -397,4 +378,4 @@ def evaluate(run: StageRun, ws: Workspace, cfg: EvalConfig, device: torch.device
                      "views improved)")
     return "\n".join(lines)
 
-__all__ = ["run_eval", "STAGE_DIRS"]
+__all__ = ["run_eval"]

@@ -5,10 +5,11 @@ layers below it, never each other."""
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import torch
 
-from ..config import CKPT, MEMBERS, CoarseConfig, RepairConfig, TrainConfig
+from ..config import METHOD, REGISTRY, BaselineConfig, CoarseConfig, TrainConfig
 from ..errors import InputError
 from ..gaussians.init import hull_points, knn_mean_distance, random_init, visual_hull
 from ..gaussians.splats import Splats, create_splats, load_checkpoint
@@ -38,13 +39,21 @@ def initial_splats(scene: PreparedScene, cfg: TrainConfig, seed: int, hull: Hull
     return create_splats(pts, cols, scales, cfg.sh_degree)
 
 
-def plain_3dgs_config(coarse: CoarseConfig, budget_s: float, coarse_train_s: float) -> CoarseConfig:
+def plain_3dgs_config(coarse: CoarseConfig, budget_s: float, coarse_train_s: float,
+                      headroom: float = BaselineConfig.headroom) -> CoarseConfig:
     """Plain 3DGS for a training-time budget (what the time would buy without the repair): the
     coarse stage's settings for one model, its iteration and densification caps scaled from G_c's
-    own rate with 4x headroom. The time budget decides; the schedules follow its elapsed fraction."""
-    scale = max(1.0, budget_s / max(coarse_train_s, 1e-6))
-    return dataclasses.replace(coarse, iterations=int(coarse.iterations * scale * 4),
-                               refine_stop=int(coarse.refine_stop * scale * 4), max_seconds=budget_s, ensemble=1)
+    own rate times `headroom`. The time budget decides; the schedules follow its elapsed fraction."""
+    scale = max(1.0, budget_s / max(coarse_train_s, 1e-6)) * headroom
+    return dataclasses.replace(coarse, iterations=int(coarse.iterations * scale),
+                               refine_stop=int(coarse.refine_stop * scale), max_seconds=budget_s, ensemble=1)
+
+
+def recorded_config(ws, stage: str) -> Any:
+    """The settings `stage` last ran with, from its manifest (defaults where it has none)."""
+    cls = next(s.config for s in REGISTRY if s.name == stage)
+    recorded = (ws.manifest(stage) or {}).get("config") or {}
+    return cls(**{k: v for k, v in recorded.items() if k in cls.__dataclass_fields__})
 
 
 def background_for(scene: PreparedScene) -> torch.Tensor:
@@ -58,30 +67,45 @@ def subbands_hwc(img: torch.Tensor) -> dict[str, object]:
     return {n: b[0].permute(1, 2, 0).float().numpy() for n, b in (("LL", ll), ("LH", lh), ("HL", hl), ("HH", hh))}
 
 
+def stage_times(ws) -> list[dict[str, Any]]:
+    """Wall time, cumulative wall time and peak memory of each method stage that ran, in order."""
+    rows, cum = [], 0.0
+    for st in METHOD:
+        m = ws.manifest(st)
+        if m is None:
+            continue
+        cum += m.get("wall_time_s", 0.0)
+        rows.append({"stage": st, "wall_time_s": m.get("wall_time_s", 0.0), "cumulative_s": round(cum, 2),
+                     "peak_memory_mb": m.get("peak_memory_mb")})
+    return rows
+
+
+def subband_file(ws, kind: str, view: str):
+    """The coarse stage's Haar subbands of training view `view`: kind "render" (G_c) or "ref" (the photo)."""
+    return ws.output("coarse", "subbands", kind, f"{view.rsplit('.', 1)[0]}.exr")
+
+
 def newest_model(ws) -> str:
     """The stage whose model a command shows by default: fine when it has run, else coarse."""
     return "fine" if ws.manifest("fine") is not None else "coarse"
 
 
-def member_checkpoint(i: int) -> str:
-    """Path of ensemble member i (>= 1) inside the coarse stage's folder; member 0 is G_c (CKPT)."""
-    return f"{MEMBERS}/ckpt_{i}.pt"
+def member_file(i: int) -> str:
+    """File of ensemble member i (>= 1) in the coarse stage's `members` output; member 0 is G_c (its `model`)."""
+    return f"ckpt_{i}.pt"
 
 
 def coarse_members(ws, scene: PreparedScene, device: torch.device) -> list[Splats]:
     """G_c and the coarse stage's other ensemble members (as many as it trained)."""
-    d = ws.stage_dir("coarse")
     n = int((ws.manifest("coarse") or {}).get("ensemble", 1))
-    return [load_checkpoint(d / (CKPT if i == 0 else member_checkpoint(i)), scene.norm, device)[0]
+    return [load_checkpoint(ws.output("coarse", "model") if i == 0 else ws.output("coarse", "members", member_file(i)),
+                            scene.norm, device)[0]
             for i in range(n)]
 
 
 def workspace_repairer(ws, device: torch.device, seed: int) -> Repairer:
     """D and U from the finetune stage, with the repair stage's settings."""
-    manifest = ws.manifest("repair") or {}
-    rcfg = RepairConfig(**{k: v for k, v in (manifest.get("config") or {}).items()
-                           if k in RepairConfig.__dataclass_fields__})
-    return load_repairer(ws.stage_dir("finetune"), rcfg, device, seed)
+    return load_repairer(ws.output("finetune", "models"), recorded_config(ws, "repair"), device, seed)
 
 
 @torch.no_grad()

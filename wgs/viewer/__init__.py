@@ -62,11 +62,10 @@ def viewer_frame(w2cs: list[np.ndarray]) -> ViewerFrame:
 
 
 def model_path(ws, stage: str | None) -> tuple[str, Path]:
-    from ..config import CKPT
     from ..stages.shared import newest_model
 
     stage = stage or newest_model(ws)
-    path = ws.stage_dir(stage) / CKPT
+    path = ws.output(stage, "model")
     if ws.manifest(stage) is None or not path.is_file():
         raise InputError(f"no {stage} model: run `wgs {stage}` (or `wgs all`) first", ws.stage_dir(stage))
     return stage, path
@@ -78,9 +77,9 @@ def site(ws, stage: str | None) -> dict[str, bytes | Path]:
     from ..scene.dataset import load_prepared
 
     stage, ckpt = model_path(ws, stage)
-    scene = load_prepared(ws.stage_dir("scene"))
+    scene = load_prepared(ws.output("scene", "prepared"))
     splats, _ = load_checkpoint(ckpt, scene.norm)  # normalised world, like the cameras
-    report = ws.stage_dir("eval") / "report.html"
+    report = ws.output("eval", "report_html")
     frame = viewer_frame([f.viewmat.double().numpy() for f in scene.train])
     first = scene.train[0]
     files: dict[str, bytes | Path] = {

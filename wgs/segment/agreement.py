@@ -1,0 +1,52 @@
+"""Masks cut to what the other posed views support.
+
+A voxel of the object's region is kept for view i when enough of the *other* views' masks hold
+it (a vote: one bad mask cannot cut the others); view i's mask then keeps only the pixels whose
+ray meets a kept voxel. Errors a view shares with none of the others (a table edge, a shadow, a
+wall seen behind the object) lie outside the other views' cones and are cut; what is object
+stays, since every view that sees it holds it. It only ever removes mask pixels.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from ..scene.camera import Camera
+from ..shape.hull import HullGrid, grid_centres, pixel_lookup, silhouette
+
+
+def votes_per_view(cameras: list[Camera], masks: list[torch.Tensor], points: torch.Tensor
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+    """For points [N, 3]: [V, N] bool, inside view v's mask, and [V, N] bool, inside its image."""
+    inside, seen = [], []
+    for cam, m in zip(cameras, masks, strict=True):
+        in_img, idx = pixel_lookup(cam, points)
+        seen.append(in_img)
+        inside.append(in_img & (m.reshape(-1)[idx] > 0.5))
+    return torch.stack(inside), torch.stack(seen)
+
+
+def supported(cameras: list[Camera], masks: list[torch.Tensor], agreement: float = 0.85, resolution: int = 96,
+              extent: float = 1.0) -> list[torch.Tensor]:
+    """Per view, [H, W] bool: pixels whose ray meets a voxel that at least `agreement` of the other
+    views that see it hold in their masks (at least one other view must see it). Cameras in the
+    normalised frame, where the object lies inside [-extent, extent]³."""
+    lo, hi = torch.full((3,), -extent), torch.full((3,), extent)
+    # a coarse pass finds the region any view could call object, the fine one votes inside it
+    pts = grid_centres(lo, hi, 32)
+    inside, _ = votes_per_view(cameras, masks, pts)
+    kept = pts[inside.sum(0) >= max(2, math.ceil(agreement * (len(cameras) - 1)))]
+    if kept.shape[0]:
+        cell = (hi - lo) / 32
+        lo, hi = torch.maximum(kept.min(0).values - cell, lo), torch.minimum(kept.max(0).values + cell, hi)
+    pts = grid_centres(lo, hi, resolution)
+    inside, seen = votes_per_view(cameras, masks, pts)
+    n_in, n_seen = inside.sum(0), seen.sum(0)
+    out = []
+    for v, cam in enumerate(cameras):
+        others_in, others_seen = n_in - inside[v].int(), n_seen - seen[v].int()
+        occ = (others_seen >= 1) & (others_in >= torch.ceil(agreement * others_seen.float()).int()) & inside[v]
+        out.append(silhouette(HullGrid(lo, hi, occ.reshape(resolution, resolution, resolution)), cam)[0])
+    return out

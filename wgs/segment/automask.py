@@ -1,0 +1,75 @@
+"""Masks for posed photos that have none: saliency, agreement between views, refinement."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..scene.camera import Camera
+from .agreement import supported
+from .refine import refine
+from .saliency import SaliencyNet
+
+
+@dataclass
+class AutoMasks:
+    masks: list[np.ndarray]  # [H, W] float32 in {0, 1}, one per view, in the order given
+    record: dict  # the model, the settings, what agreement removed and where it could not, the time per photo
+
+
+def automatic_masks(images: list[np.ndarray], cameras: list[Camera], agreement: float = 0.85,
+                    model: str | None = None, threads: int = 1, min_fraction: float = 1e-4) -> AutoMasks:
+    """Object masks for `images` [H, W, 3] in [0, 1] taken by `cameras` (normalised frame).
+
+    Order: the network's probability per photo; its > 0.5 region cut to what the other views'
+    regions support (`agreement.supported`, skipped with fewer than 3 views); the probability,
+    limited to the supported pixels, refined along the photo's edges and cleaned (`refine`). A view
+    of which the others support less than `min_fraction` of the image keeps the network's own mask
+    (listed in the record's `without_agreement`)."""
+    t0 = time.perf_counter()
+    net = SaliencyNet(model, threads)
+    probs = [net(img) for img in images]
+    t_net = time.perf_counter() - t0
+    raw = [torch.from_numpy(p > 0.5) for p in probs]
+    cams = [Camera(c.K.float(), c.viewmat.float(), c.width, c.height) for c in cameras]
+    support = supported(cams, raw, agreement) if len(cams) >= 3 else raw
+    masks, cut, alone = [], [], []
+    for k, (img, p, r, s) in enumerate(zip(images, probs, raw, support, strict=True)):
+        s = s.numpy()
+        m = refine(img, np.where(s, p, 0.0))
+        if m.mean() < min_fraction:  # the others support nothing of it: keep the network's own mask
+            m = refine(img, p)
+            alone.append(k)
+        masks.append(m.astype(np.float32))
+        cut.append(float((r.numpy() & ~m).sum() / max(1, r.numpy().sum())))
+    seconds = time.perf_counter() - t0
+    return AutoMasks(masks, {
+        "model": net.record.to_json(), "agreement": agreement if len(cameras) >= 3 else None,
+        "cut_by_agreement": {"mean": float(np.mean(cut)), "max": float(np.max(cut))},
+        "without_agreement": alone,
+        "seconds_per_photo": round(seconds / max(1, len(images)), 3),
+        "network_seconds_per_photo": round(t_net / max(1, len(images)), 3)})
+
+
+def mask_sheet(images: list[np.ndarray], masks: list[np.ndarray], height: int = 160, columns: int = 4) -> np.ndarray:
+    """Photos with their mask's outline in green and the background dimmed, tiled: [H, W, 3] in [0, 1]."""
+    tiles = []
+    for img, m in zip(images, masks, strict=True):
+        h, w = m.shape
+        step = max(1, round(h / height))
+        small, keep = img[::step, ::step, :3].copy(), m[::step, ::step] > 0.5
+        small[~keep] *= 0.35
+        pad = np.pad(keep, 1, mode="edge")
+        rim = keep & ~(pad[:-2, 1:-1] & pad[2:, 1:-1] & pad[1:-1, :-2] & pad[1:-1, 2:])
+        small[rim] = (0.0, 1.0, 0.0)
+        tiles.append(small)
+    th, tw = max(t.shape[0] for t in tiles), max(t.shape[1] for t in tiles)
+    rows = -(-len(tiles) // columns)
+    sheet = np.ones((rows * th, min(columns, len(tiles)) * tw, 3), np.float32)
+    for k, t in enumerate(tiles):
+        r, c = divmod(k, columns)
+        sheet[r * th: r * th + t.shape[0], c * tw: c * tw + t.shape[1]] = t
+    return sheet
