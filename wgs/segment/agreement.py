@@ -28,11 +28,22 @@ def votes_per_view(cameras: list[Camera], masks: list[torch.Tensor], points: tor
     return torch.stack(inside), torch.stack(seen)
 
 
+def scaled(camera: Camera, longest: int) -> Camera:
+    """The camera with its image scaled down to at most `longest` pixels on its longer side."""
+    s = min(1.0, longest / max(camera.width, camera.height))
+    if s == 1.0:
+        return camera
+    K = camera.K.clone()
+    K[:2] *= s
+    return Camera(K, camera.viewmat, max(1, round(camera.width * s)), max(1, round(camera.height * s)))
+
+
 def supported(cameras: list[Camera], masks: list[torch.Tensor], agreement: float = 0.85, resolution: int = 96,
-              extent: float = 1.0) -> list[torch.Tensor]:
+              extent: float = 1.0, longest: int = 640) -> list[torch.Tensor]:
     """Per view, [H, W] bool: pixels whose ray meets a voxel that at least `agreement` of the other
     views that see it hold in their masks (at least one other view must see it). Cameras in the
-    normalised frame, where the object lies inside [-extent, extent]³."""
+    normalised frame, where the object lies inside [-extent, extent]³. The grid's silhouettes are
+    drawn at most `longest` pixels wide and scaled up (a voxel spans many pixels of a large photo)."""
     lo, hi = torch.full((3,), -extent), torch.full((3,), extent)
     # a coarse pass finds the region any view could call object, the fine one votes inside it
     pts = grid_centres(lo, hi, 32)
@@ -48,5 +59,7 @@ def supported(cameras: list[Camera], masks: list[torch.Tensor], agreement: float
     for v, cam in enumerate(cameras):
         others_in, others_seen = n_in - inside[v].int(), n_seen - seen[v].int()
         occ = (others_seen >= 1) & (others_in >= torch.ceil(agreement * others_seen.float()).int()) & inside[v]
-        out.append(silhouette(HullGrid(lo, hi, occ.reshape(resolution, resolution, resolution)), cam)[0])
+        small = silhouette(HullGrid(lo, hi, occ.reshape(resolution, resolution, resolution)), scaled(cam, longest))[0]
+        out.append(torch.nn.functional.interpolate(small[None, None].float(), (cam.height, cam.width),
+                                                   mode="nearest")[0, 0] > 0.5)
     return out
