@@ -39,11 +39,12 @@ def scaled(camera: Camera, longest: int) -> Camera:
 
 
 def supported(cameras: list[Camera], masks: list[torch.Tensor], agreement: float = 0.85, resolution: int = 96,
-              extent: float = 1.0, longest: int = 640) -> list[torch.Tensor]:
+              extent: float = 1.0, longest: int = 640, own: bool = True) -> list[torch.Tensor]:
     """Per view, [H, W] bool: pixels whose ray meets a voxel that at least `agreement` of the other
     views that see it hold in their masks (at least one other view must see it). Cameras in the
     normalised frame, where the object lies inside [-extent, extent]³. The grid's silhouettes are
-    drawn at most `longest` pixels wide and scaled up (a voxel spans many pixels of a large photo)."""
+    drawn at most `longest` pixels wide and scaled up (a voxel spans many pixels of a large photo).
+    `own` False: the voxels need not be in view i's own mask (what the others alone say is object)."""
     lo, hi = torch.full((3,), -extent), torch.full((3,), extent)
     # a coarse pass finds the region any view could call object, the fine one votes inside it
     pts = grid_centres(lo, hi, 32)
@@ -58,7 +59,9 @@ def supported(cameras: list[Camera], masks: list[torch.Tensor], agreement: float
     out = []
     for v, cam in enumerate(cameras):
         others_in, others_seen = n_in - inside[v].int(), n_seen - seen[v].int()
-        occ = (others_seen >= 1) & (others_in >= torch.ceil(agreement * others_seen.float()).int()) & inside[v]
+        occ = (others_seen >= 1) & (others_in >= torch.ceil(agreement * others_seen.float()).int())
+        if own:
+            occ &= inside[v]
         small = silhouette(HullGrid(lo, hi, occ.reshape(resolution, resolution, resolution)), scaled(cam, longest))[0]
         out.append(torch.nn.functional.interpolate(small[None, None].float(), (cam.height, cam.width),
                                                    mode="nearest")[0, 0] > 0.5)

@@ -27,8 +27,9 @@ def automatic_masks(images: list[np.ndarray], cameras: list[Camera], agreement: 
     Order: the network's probability per photo; its > 0.5 region cut to what the other views'
     regions support (`agreement.supported`, skipped with fewer than 3 views); the probability,
     limited to the supported pixels, refined along the photo's edges and cleaned (`refine`). A view
-    of which the others support less than `min_fraction` of the image keeps the network's own mask
-    (listed in the record's `without_agreement`)."""
+    of which the others support less than `min_fraction` of the image (the network saw something
+    else there) takes what the other views alone call object: the silhouette of their vote, fatter
+    than the object but consistent with the other masks (listed in the record's `without_agreement`)."""
     t0 = time.perf_counter()
     net = SaliencyNet(model, threads)
     probs = [net(img) for img in images]
@@ -38,10 +39,9 @@ def automatic_masks(images: list[np.ndarray], cameras: list[Camera], agreement: 
     support = supported(cams, raw, agreement) if len(cams) >= 3 else raw
     masks, cut, alone = [], [], []
     for k, (img, p, r, s) in enumerate(zip(images, probs, raw, support, strict=True)):
-        s = s.numpy()
-        m = refine(img, np.where(s, p, 0.0))
-        if m.mean() < min_fraction:  # the others support nothing of it: keep the network's own mask
-            m = refine(img, p)
+        m = refine(img, np.where(s.numpy(), p, 0.0))
+        if m.mean() < min_fraction:  # the others support nothing of it: what they alone call object
+            m = supported(cams, raw, agreement, own=False)[k].numpy() if len(cams) >= 3 else refine(img, p)
             alone.append(k)
         masks.append(m.astype(np.float32))
         cut.append(float((r.numpy() & ~m).sum() / max(1, r.numpy().sum())))

@@ -73,7 +73,8 @@ def mask_line(masks: dict, sheet: Path) -> str:
         return (f"masks: automatic ({m['package'] or m['file']}{' ' + m['version'] if m['version'] else ''}, "
                 f"agreement between views cut {100 * masks['cut_by_agreement']['mean']:.1f} % of the network's "
                 f"object area, {masks['seconds_per_photo']:.1f} s per photo"
-                + (f"; the other views support nothing of {', '.join(masks['without_agreement'])}: the network's own"
+                + ("; the other views support nothing of the network's mask of "
+                   f"{', '.join(masks['without_agreement'])}: what they alone call object there"
                    if masks["without_agreement"] else "")
                 + f"); check them in {sheet}, correct them with --masks DIR")
     if "auto_failed" in masks:

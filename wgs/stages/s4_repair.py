@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from ..config import OUTPUTS, RepairConfig
+from ..errors import InputError
 from ..gaussians.trainer import render_frame
 from ..io import atomic_write_json
 from ..io.exr import write_subbands
@@ -80,8 +81,12 @@ def silhouette_predictor(scene, cfg: RepairConfig, device: torch.device) -> Silh
     if folder is None:
         log("repair: no shipped silhouette model S -> no carving")
         return None
+    try:
+        grid, _ = visual_hull_grid(scene.train, cfg.hull_resolution, tolerate=0)
+    except InputError:  # the training starts from the hull that tolerates one mask; carving needs them all
+        log("repair: the training masks share no region (every mask agreeing) -> no carving")
+        return None
     model, _ = load_model(folder, device)
-    grid, _ = visual_hull_grid(scene.train, cfg.hull_resolution, tolerate=0)
     return SilhouettePredictor(model, grid, device)
 
 

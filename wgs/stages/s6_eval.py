@@ -126,12 +126,17 @@ def summarise(per: dict[str, dict[str, float]]) -> dict[str, float | None]:
 def shape_reference(scene, frames: list[Frame], resolution: int) -> dict[str, Any] | None:
     """How fat the visual hull is: the hull of all training masks (every mask agreeing) scored at
     the test views that have masks, and the leave-one-out estimate that needs no test views (the
-    hull of the other training masks at each training camera). None without masks."""
+    hull of the other training masks at each training camera). None without masks, or where the
+    training masks share no region."""
     if not scene.has_masks:
         return None
-    grid, _ = visual_hull_grid(scene.train, resolution, tolerate=0)
+    try:
+        grid, _ = visual_hull_grid(scene.train, resolution, tolerate=0)
+        loo = leave_one_out(scene.train, resolution) if len(scene.train) >= 2 else {}
+    except InputError:
+        log("eval: the training masks share no region (every mask agreeing) -> no visual-hull scores")
+        return None
     test = {f.name: silhouette_scores(silhouette(grid, f)[0], f.mask > 0.5) for f in frames if f.mask is not None}
-    loo = leave_one_out(scene.train, resolution) if len(scene.train) >= 2 else {}
     return {"hull_test": mean_scores(test), "leave_one_out": mean_scores(loo), "hull_resolution": resolution,
             "hull_test_per_view": test, "leave_one_out_per_view": loo}
 
