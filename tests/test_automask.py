@@ -6,6 +6,7 @@ import shutil
 
 import numpy as np
 import pytest
+import torch
 from click.testing import CliRunner
 from conftest import expect_error
 from make_scene import make_scene
@@ -140,3 +141,15 @@ def test_a_photo_where_the_network_sees_nothing_leaves_the_scene_without_masks(r
     ws = prepare(room_scene, tmp_path / "ws", "--views", "3")
     info = ws.manifest("scene")["summary"]
     assert not info["has_masks"] and info["masks"]["source"] == "none" and "no object" in info["masks"]["auto_failed"]
+
+
+def test_a_view_whose_mask_is_all_wrong_takes_what_the_others_call_object(blender_scene, tmp_path):
+    scene = load_prepared(prepare(blender_scene, tmp_path / "ws").output("scene", "prepared"), load_test_images=True)
+    frames = scene.train + scene.test
+    truth = [f.mask > 0.5 for f in frames]
+    wrong = [t.clone() for t in truth]
+    wrong[0] = torch.zeros_like(truth[0])
+    wrong[0][:8, :8] = True  # the network saw something else, in a corner
+    assert not (supported(frames, wrong, resolution=64)[0] & wrong[0]).any()  # the others support none of it
+    theirs = supported(frames, wrong, resolution=64, own=False)[0]
+    assert (theirs & truth[0]).sum() >= 0.97 * truth[0].sum()  # fatter than the object, but all of it

@@ -4,6 +4,7 @@ import json
 import math
 import shutil
 
+import numpy as np
 import pytest
 from click.testing import CliRunner
 from conftest import make_scene
@@ -330,3 +331,24 @@ def test_silhouette_model_carves_the_hull_and_fine_starts_there(tiny, tmp_path):
         was = silhouette(full, f)[0] & (f.mask > 0.5)
         assert not (was & ~silhouette(carved, f)[0]).any()
     assert math.isfinite(json.loads((ws.stage_dir("eval") / "results.json").read_text())["psnr"])
+
+
+def test_masks_that_share_no_region_train_without_carving_or_hull_scores(tiny, tmp_path):
+    """One training mask off the object (the hull that tolerates one bad mask still exists, the one
+    every mask agrees on does not): the pipeline runs through, without carving and without the
+    visual hull's scores, and says so."""
+    from wgs.io.images import read_image, write_png
+
+    scene, cfg, _, _ = tiny
+    d = tmp_path / "scene"
+    shutil.copytree(scene, d)
+    img = read_image(d / "train" / "r_0.png")
+    alpha = np.zeros(img.shape[:2], np.float32)
+    alpha[:6, :6] = 1.0  # a corner the object never covers
+    write_png(d / "train" / "r_0.png", np.concatenate([img[..., :3], alpha[..., None]], -1))
+    res = run_all(cfg, tmp_path / "ws", d)
+    ws = Workspace(tmp_path / "ws")
+    assert ws.manifest("repair").get("carving") is None and ws.manifest("fine")["start"] == "hull"
+    out = json.loads(ws.output("eval", "results").read_text())
+    assert out["shape"] is None and math.isfinite(out["psnr"])
+    assert res.exit_code == 0
