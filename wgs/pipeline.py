@@ -35,7 +35,7 @@ def left_out(stage: str, info: dict[str, Any], force_repair: bool, asked: tuple[
     stages that run only on request and were asked for."""
     n_train, n_test = len(info["train_names"]), len(info["test_names"])
     if stage not in UNASKED and stage not in asked:
-        return f"{COMMANDS[stage]}: runs only when asked for (`wgs all --{COMMANDS[stage]}` or `wgs {COMMANDS[stage]}`)"
+        return f"not asked for (--{COMMANDS[stage]})"
     if stage in REPAIR_STAGES and n_train >= MANY_VIEWS and not force_repair:
         return f"{n_train} training views -> no diffusion repair (it is for sparse views; --force-repair runs it)"
     if stage == "eval" and not n_test:
