@@ -37,11 +37,13 @@ def automatic_masks(images: list[np.ndarray], cameras: list[Camera], agreement: 
     raw = [torch.from_numpy(p > 0.5) for p in probs]
     cams = [Camera(c.K.float(), c.viewmat.float(), c.width, c.height) for c in cameras]
     support = supported(cams, raw, agreement) if len(cams) >= 3 else raw
-    masks, cut, alone = [], [], []
+    masks, cut, alone, theirs = [], [], [], None
     for k, (img, p, r, s) in enumerate(zip(images, probs, raw, support, strict=True)):
         m = refine(img, np.where(s.numpy(), p, 0.0))
         if m.mean() < min_fraction:  # the others support nothing of it: what they alone call object
-            m = supported(cams, raw, agreement, own=False)[k].numpy() if len(cams) >= 3 else refine(img, p)
+            if len(cams) >= 3 and theirs is None:  # one vote for every such view
+                theirs = supported(cams, raw, agreement, own=False)
+            m = theirs[k].numpy() if theirs is not None else refine(img, p)
             alone.append(k)
         masks.append(m.astype(np.float32))
         cut.append(float((r.numpy() & ~m).sum() / max(1, r.numpy().sum())))
