@@ -87,14 +87,14 @@ def option_type(name: str, tp: Any) -> click.ParamType:
     return {int: click.INT, float: click.FLOAT}.get(tp, click.STRING)
 
 
-def config_option(table: str, name: str, meaning: str | None = None) -> Callable:
+def config_option(table: str, name: str) -> Callable:
     """A click option for field `name` of stage table `table`'s config: `--name-with-dashes`
     (or `FLAG_NAMES`), typed, validated and with its default stated from the config."""
     cls = STAGES[table]
     tp = field_types(cls)[name]
     base = next((a for a in getattr(tp, "__args__", (tp,)) if a is not type(None)), tp)
     default = next(f.default for f in dataclasses.fields(cls) if f.name == name)
-    text = meaning or MEANING[name]
+    text = MEANING[name]
     if default is not None:
         text = f"{text} (default {_shown(default)})"
     flag = "--" + name.replace("_", "-")

@@ -192,8 +192,7 @@ def register(cli, stage_common, workspace_option) -> None:
                   help="paper | all | comma-separated names (loo-rgb, offline-rgb, orm-rgb, orm-wavelet, "
                        "orm-wavelet-u, 3dgs, orm-wavelet-u-j2).")
     @click.option("--repeats", type=int, default=1, show_default=True, help="Runs per row (seeds seed..seed+K-1).")
-    @click.option("--views", type=int, default=None, help="Number of training views.")
-    @click.option("--downscale", type=int, default=None, help="Integer image downscale factor.")
+    @config_options("prepare", "views", "downscale")
     @preset_option
     @workspace_option
     @click.pass_obj
