@@ -306,12 +306,16 @@ INNER = {"wgs:render": ("wgs:project", "wgs:sh", "wgs:raster"),
          "wgs:backward": ("RasterizeNumbaBackward", "ProjectNumbaBackward")}
 
 
-def bench_iteration(scene: str, root: str, views: int, downscale: int, window: int = 200, seed: int = 0) -> dict:
-    """Where a coarse training iteration's time goes at the scene's real size: the coarse stage's own
-    trainer and settings, profiled (torch.profiler, CPU) over `window` iterations in the middle of
-    G_c's training, by the trainer's phase labels (render = projection + SH + rasterizer forward,
-    loss = L1 + SSIM + mask, backward with the rasterizer's and the projection's own backward,
-    Adam, the finite check, densification); "rest" is the loop's Python and bookkeeping."""
+def bench_iteration(scene: str, root: str, views: int, downscale: int, window: int = 200, seed: int = 0,
+                    stage: str = "coarse", workspace: str | None = None, start: int | None = None) -> dict:
+    """Where a training iteration's time goes at the scene's real size, profiled (torch.profiler,
+    CPU) over `window` iterations in the middle of the stage's own training with its own settings:
+    G_c's (`stage` coarse, on `scene` prepared under `root`) or G_f's (`stage` fine, on `workspace`,
+    whose repair stage has run). The rows are the trainer's phase labels (render = projection + SH +
+    rasterizer forward, loss = L1 + SSIM + mask, the pseudo view's render and loss, backward with
+    the rasterizer's and the projection's own backward, Adam, the finite check, densification);
+    "rest" is the loop's Python and bookkeeping. start: the window's first iteration (default: the
+    middle of the stage's iterations)."""
     from torch.profiler import ProfilerActivity, profile
 
     from .config import resolve
@@ -319,13 +323,22 @@ def bench_iteration(scene: str, root: str, views: int, downscale: int, window: i
     from .stages import StageEnv, run_stage
     from .stages.shared import initial_splats
 
-    ws = Workspace(Path(root) / "iteration")
-    run_stage("scene", ws, resolve("prepare", cli={"views": views, "downscale": downscale}),
-              StageEnv(torch.device("cpu"), seed, scene_dir=Path(scene)))
-    prepared = load_prepared(ws.output("scene", "prepared"))
-    cfg = resolve("coarse")
+    device = torch.device("cpu")
+    cfg = resolve(stage)
+    if stage == "fine":
+        from .stages.s5_fine import fine_inputs
+
+        ws = Workspace(Path(workspace))
+        inputs = fine_inputs(ws, cfg, device, seed)
+        prepared, splats, pseudo = inputs.scene, inputs.splats, inputs.pseudo(cfg)
+    else:
+        ws = Workspace(Path(root) / "iteration")
+        run_stage("scene", ws, resolve("prepare", cli={"views": views, "downscale": downscale}),
+                  StageEnv(device, seed, scene_dir=Path(scene)))
+        prepared = load_prepared(ws.output("scene", "prepared"))
+        splats, pseudo = initial_splats(prepared, cfg, seed), None
     total = cfg.iterations
-    start = total // 2
+    start = total // 2 if start is None else start
     cfg.iterations = start + window
     prof = profile(activities=[ProfilerActivity.CPU])
     marks: dict[str, float] = {}
@@ -342,8 +355,8 @@ def bench_iteration(scene: str, root: str, views: int, downscale: int, window: i
             sizes.append(int(params["means"].shape[0]))
 
     torch.manual_seed(seed)
-    train_gaussians(initial_splats(prepared, cfg, seed), prepared.train, cfg, torch.device("cpu"), extent=1.0,
-                    desc="bench iteration", seed=seed, has_masks=prepared.has_masks, on_step=on_step)
+    train_gaussians(splats, prepared.train, cfg, device, extent=1.0, desc="bench iteration", seed=seed,
+                    has_masks=prepared.has_masks, on_step=on_step, pseudo=pseudo)
     wall_ms = 1e3 * (marks["t1"] - marks["t0"]) / window
     totals: dict[str, float] = {}
     for ev in prof.key_averages():
@@ -354,8 +367,9 @@ def bench_iteration(scene: str, root: str, views: int, downscale: int, window: i
     rows["rest (Python, bookkeeping, profiler)"] = round(wall_ms - sum(rows.values()), 3)
     inner = {name: round(totals.get(name, 0.0), 3) for names in INNER.values() for name in names}
     img = prepared.train[0]
-    return {"benchmark": "iteration", "scene": scene, "size": [img.width, img.height], "views": len(prepared.train),
-            "iterations": f"{start + 1}..{start + window} of G_c's {total}",
+    return {"benchmark": "iteration", "stage": stage, "scene": workspace if stage == "fine" else scene,
+            "size": [img.width, img.height], "views": len(prepared.train),
+            "iterations": f"{start + 1}..{start + window} of {total}",
             "gaussians": [min(sizes), max(sizes)], "ms_per_iteration_profiled": round(wall_ms, 3),
             "phases_ms": rows, "inside_ms": inner, "threads": torch.get_num_threads(),
             "machine": {"platform": platform.platform(), "cpus": os.cpu_count()}}
@@ -424,6 +438,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--views", type=int, default=4)
     ap.add_argument("--downscale", type=int, default=2)
     ap.add_argument("--prepared", help="contention: a workspace after `wgs prepare`")
+    ap.add_argument("--stage", default="coarse", choices=["coarse", "fine"], help="iteration: whose training loop")
+    ap.add_argument("--workspace", help="iteration --stage fine: a workspace after `wgs repair`")
     ap.add_argument("--iterations", type=int, default=300, help="contention: coarse iterations per run")
     ap.add_argument("--variants", default=",".join(CONTENTION_VARIANTS), help="contention: thread settings")
     ap.add_argument("--matcher", default="auto", help="sfm: auto, exhaustive or sequential")
@@ -432,10 +448,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--objects", default=",".join(SHAPE_OBJECTS), help="shape: held-out meshes by corpus name")
     a = ap.parse_args(argv)
     if a.which == "iteration":
-        if not Path(a.scene).is_dir():
+        if a.stage == "fine" and not (a.workspace and Workspace(Path(a.workspace)).output("repair", "views").is_file()):
+            ap.error("iteration --stage fine needs --workspace WS where `wgs repair` has run")
+        if a.stage == "coarse" and not Path(a.scene).is_dir():
             print(f"scene {a.scene} not found: skipped")
             return
-        json.dump(bench_iteration(a.scene, a.root, a.views, a.downscale), sys.stdout, indent=2)
+        json.dump(bench_iteration(a.scene, a.root, a.views, a.downscale, stage=a.stage, workspace=a.workspace),
+                  sys.stdout, indent=2)
         print()
         return
     if a.which == "masks":

@@ -82,7 +82,7 @@ class CoarseConfig(CurveConfig, TrainConfig):
     # coarse models trained with seeds seed .. seed + ensemble - 1 (the first is G_c); the repair
     # averages their repaired renders: their sparse-view artifacts differ, the object does not
     # (docs/repair-prior.md)
-    ensemble: int = 10
+    ensemble: int = 6
 
 
 @dataclass
@@ -114,7 +114,7 @@ class FinetuneConfig:
     lora_crop: int = 64
     use_u: bool = True
     prior: str = "builtin"  # builtin: the prior shipped in wgs/prior/weights; none: from scratch; or a folder
-    prior_steps: int = 300  # per-object fine-tune of the prior D (early-stopped on held-out pairs)
+    prior_steps: int = 150  # per-object fine-tune of the prior D (early-stopped on held-out pairs)
     prior_lr: float = 5e-5
     prior_eval_every: int = 25
     prior_patience: int = 4
@@ -176,7 +176,7 @@ class LpipsWeightsConfig:
 class FineConfig(LpipsWeightsConfig, CurveConfig, TrainConfig):
     """Refinement of G_c on the real and the pseudo references."""
 
-    iterations: int = 2500
+    iterations: int = 1500
     refine_start: int = 100
     refine_stop: int = 1000
     # where G_f starts: "hull" trains afresh from the visual-hull init on the real and pseudo views
@@ -197,7 +197,7 @@ class EvalConfig(LpipsWeightsConfig):
     max_views: int | None = None  # evaluate on the first k test views only
     repair_gain: bool = True  # also repair G_c's renders at the test poses and score them (the repair's own gain)
     # at this many test poses spread evenly over them (0: all): each repairs every member's render
-    repair_gain_views: int = 50
+    repair_gain_views: int = 25
     # the visual hull's grid (voxels along its box's side) whose silhouettes are scored at the test
     # views and, leaving each training view out in turn, at the training views
     hull_resolution: int = TrainConfig.hull_resolution

@@ -97,12 +97,36 @@ def run_fine(ws: Workspace, cfg: FineConfig, env: StageEnv, force: bool = False)
                         lambda run: train_fine(run, ws, cfg, env.device, env.seed))
 
 
-def train_fine(run: StageRun, ws: Workspace, cfg: FineConfig, device: torch.device, seed: int) -> str:
+@dataclasses.dataclass
+class FineInputs:
+    """What the fine stage trains on: the prepared scene, the starting Gaussians and where they come
+    from, the pseudo frames and their weights, the background, and the LPIPS term."""
+
+    scene: PreparedScene
+    splats: Splats
+    start: str
+    frames: list[Frame]
+    weights: list[float]
+    background: torch.Tensor
+    lpips_fn: object
+    lpips_term: dict
+
+    def pseudo(self, cfg: FineConfig, frames: list[Frame] | None = None) -> PseudoViews:
+        return PseudoViews(self.frames if frames is None else frames, self.weights, pseudo_schedule(cfg),
+                           self.background, cfg.pseudo_every, self.lpips_fn, cfg.lpips_weight)
+
+
+def fine_inputs(ws: Workspace, cfg: FineConfig, device: torch.device, seed: int) -> FineInputs:
     scene = load_prepared(ws.output("scene", "prepared"))
     splats, start = starting_splats(ws, scene, cfg, seed)
     frames, weights = load_pseudo_views(ws)
-    bg = background_for(scene)
     lpips_fn, lpips_term = lpips_for_training(cfg, device)
+    return FineInputs(scene, splats, start, frames, weights, background_for(scene), lpips_fn, lpips_term)
+
+
+def train_fine(run: StageRun, ws: Workspace, cfg: FineConfig, device: torch.device, seed: int) -> str:
+    inputs = fine_inputs(ws, cfg, device, seed)
+    scene, splats, start, frames, bg = inputs.scene, inputs.splats, inputs.start, inputs.frames, inputs.background
     torch.manual_seed(seed)
     probe, probe_names = test_probe(ws, scene, cfg, bg, device)
     res, curve, probe_s, offset = None, [], 0.0, 0.0
@@ -110,7 +134,7 @@ def train_fine(run: StageRun, ws: Workspace, cfg: FineConfig, device: torch.devi
         if res is not None:  # a later round: start from the refined model and its repaired renders
             splats = res.splats
             frames = repaired_again(ws, splats, frames, bg, device, seed)
-        pseudo = PseudoViews(frames, weights, pseudo_schedule(cfg), bg, cfg.pseudo_every, lpips_fn, cfg.lpips_weight)
+        pseudo = inputs.pseudo(cfg, frames)
         res = train_gaussians(splats, scene.train, cfg, device, extent=1.0,
                               desc="fine" if cfg.rounds == 1 else f"fine round {r}", seed=seed + r - 1,
                               has_masks=scene.has_masks, pseudo=pseudo,
@@ -124,7 +148,7 @@ def train_fine(run: StageRun, ws: Workspace, cfg: FineConfig, device: torch.devi
     save_checkpoint(run.output("model"), res.splats, scene.norm, res.iterations)
     n = export_ply(run.output("ply"), to_world(res.splats, scene.norm), VIEWER_SH_DEGREE)
     run.record.update({"num_gaussians": n, "iterations": res.iterations, "num_pseudo": len(frames),
-                       "rounds": max(1, cfg.rounds), "start": start, "lpips_term": lpips_term,
+                       "rounds": max(1, cfg.rounds), "start": start, "lpips_term": inputs.lpips_term,
                        "train_seconds": round(res.seconds, 2), "final_loss": res.losses[-1], "seed": seed})
     origin = {"hull": "the visual hull", "carved hull": "the carved visual hull"}.get(start, "G_c")
     return f"fine: {n} Gaussians trained from {origin}, {len(frames)} pseudo views, {res.seconds:.1f} s"
