@@ -67,6 +67,8 @@ num_views = 16
 iterations = 20
 refine_start = 5
 refine_every = 5
+[eval]
+turntable_frames = 8
 """
 
 from make_scene import make_scene  # noqa: E402

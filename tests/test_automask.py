@@ -143,6 +143,29 @@ def test_a_photo_where_the_network_sees_nothing_leaves_the_scene_without_masks(r
     assert not info["has_masks"] and info["masks"]["source"] == "none" and "no object" in info["masks"]["auto_failed"]
 
 
+def test_views_that_disagree_on_the_object_leave_the_scene_without_masks(room_scene, tmp_path, monkeypatch):
+    """A network that finds a different thing in every photo: agreement cuts most of each mask."""
+    rng = np.random.default_rng(0)
+
+    def elsewhere(self, rgb):
+        h, w = rgb.shape[:2]
+        y, x = rng.integers(0, h - h // 4), rng.integers(0, w - w // 4)
+        p = np.zeros((h, w), np.float32)
+        p[y: y + h // 4, x: x + w // 4] = 1.0
+        return p
+
+    monkeypatch.setattr(saliency.SaliencyNet, "__call__", elsewhere)
+    res = CliRunner().invoke(cli, ["-w", str(tmp_path / "ws"), "prepare", str(room_scene), "--views", "4"],
+                             catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    info = Workspace(tmp_path / "ws").manifest("scene")["summary"]
+    assert not info["has_masks"] and info["masks"]["source"] == "none"
+    assert info["masks"]["cut_by_agreement"]["mean"] > 0.3
+    text = " ".join(res.output.split())  # the console wraps long lines
+    assert text.count("masks: none (the views disagree on the object") == 1 and "--masks DIR" in text, res.output
+    assert not Workspace(tmp_path / "ws").output("scene", "prepared", "masks").exists()
+
+
 def test_a_view_whose_mask_is_all_wrong_takes_what_the_others_call_object(blender_scene, tmp_path):
     scene = load_prepared(prepare(blender_scene, tmp_path / "ws").output("scene", "prepared"), load_test_images=True)
     frames = scene.train + scene.test

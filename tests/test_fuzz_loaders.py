@@ -29,7 +29,7 @@ pytestmark = pytest.mark.slow  # `pytest -m 'not slow'` for a quick loop; make t
 
 common = {"deadline": None, "suppress_health_check": [HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
           "derandomize": True}
-settings.register_profile("ci", max_examples=800, **common)
+settings.register_profile("ci", max_examples=400, **common)
 settings.register_profile("stress", max_examples=5000, **common)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 

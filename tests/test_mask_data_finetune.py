@@ -74,7 +74,11 @@ def test_mask_data_pairs_and_index(coarse_ws, tmp_path, strategy):
 def test_finetune_trains_and_saves_d_and_u(coarse_ws, tmp_path):
     ws = copy_ws(coarse_ws, tmp_path / "ws")
     mask_data(ws, tmp_path)
-    invoke("-w", str(ws.root), "finetune", "--preset", "fast", "--d-steps", "30", "--u-max-steps", "30")
+    cfg = tmp_path / "finetune.toml"
+    # a short fine-tune of the prior: the fast preset's 100 steps test nothing more here
+    cfg.write_text("[finetune]\nprior_steps = 12\nprior_eval_every = 4\n")
+    invoke("--config", str(cfg), "-w", str(ws.root), "finetune", "--preset", "fast", "--d-steps", "30",
+           "--u-max-steps", "30")
     d = ws.stage_dir("finetune")
     D, cfg = load_model(d / "D")
     assert cfg["domain"] == "wavelet"
@@ -92,7 +96,8 @@ def test_finetune_trains_and_saves_d_and_u(coarse_ws, tmp_path):
     for k in ("l1_before", "l1_after", "psnr_before", "psnr_after"):
         assert torch.isfinite(torch.tensor(m["heldout"][k]))
     # --prior none: today's from-scratch denoising D (SDEdit at repair time), its own width
-    invoke("-w", str(ws.root), "finetune", "--preset", "fast", "--d-steps", "10", "--prior", "none")
+    invoke("-w", str(ws.root), "finetune", "--preset", "fast", "--d-steps", "10", "--u-max-steps", "10",
+           "--prior", "none")
     cfg = load_model(d / "D")[1]
     assert cfg["start"] == "clean" and cfg["channels"] == 16 and ws.manifest("finetune")["prior"] is None
     # RGB-domain D for the ablation: no U

@@ -76,6 +76,19 @@ def test_hull_silhouette_is_the_mask_at_training_cameras_and_holds_the_object_el
         assert s["missed"] < 0.02 and 0.0 < s["excess"] < 0.3
 
 
+def test_a_kept_hull_is_the_same_hull_and_a_copy(mug_hull):
+    side, grid = mug_hull
+    again, colours = visual_hull_grid(side, resolution=64, extent=0.7, tolerate=0)
+    assert torch.equal(again.occ, grid.occ) and torch.equal(again.lo, grid.lo)
+    again.occ.zero_()
+    colours.zero_()
+    third, colours3 = visual_hull_grid(side, resolution=64, extent=0.7, tolerate=0)
+    assert torch.equal(third.occ, grid.occ) and colours3.abs().sum() > 0  # the caller's change stays its own
+    cut = [Frame(f.K, f.viewmat, f.width, f.height, name=f.name, image=f.image, mask=f.mask.clone()) for f in side]
+    cut[0].mask[:, : SIZE // 2] = 0.0  # another mask is another hull
+    assert visual_hull_grid(cut, resolution=64, extent=0.7, tolerate=0)[0].occ.sum() < grid.occ.sum()
+
+
 def test_silhouette_scores_exact():
     true = torch.zeros(4, 4, dtype=torch.bool)
     true[:2, :2] = True  # 4 px

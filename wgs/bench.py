@@ -255,12 +255,55 @@ SHAPE_OBJECTS = ("common-3d-test-models-cow", "common-3d-test-models-teapot", "c
                  "common-3d-test-models-homer")
 
 
+S_THRESHOLDS = (0.1, 0.3, 0.5)
+
+
+def silhouette_knowledge(ws: Workspace, thresholds: tuple[float, ...] = S_THRESHOLDS) -> dict:
+    """What S knows at the test views (which it never sees in the pipeline): its silhouette's IoU
+    (object probability > 0.5) beside the strict hull's and G_c's opacity's (> 0.5), and for each
+    threshold t the share of the hull's excess where S says under t (what carving at t could
+    remove) against the share of the true object there (what it would wrongly remove)."""
+    from .config import RepairConfig
+    from .gaussians.trainer import render_frame
+    from .shape.hull import silhouette
+    from .shape.scores import silhouette_scores
+    from .stages.s4_repair import silhouette_predictor
+    from .stages.shared import background_for, coarse_members
+
+    scene = load_prepared(ws.output("scene", "prepared"), load_test_images=True)
+    device = torch.device("cpu")
+    shape = silhouette_predictor(scene, RepairConfig(), device)
+    frames = [f for f in scene.test if f.mask is not None]
+    if shape is None or not frames:
+        return {}
+    gc = coarse_members(ws, scene, device)[0]
+    iou = {"S": [], "hull": [], "coarse": []}
+    excess = {t: 0 for t in thresholds}
+    lost = {t: 0 for t in thresholds}
+    total_excess = total_true = 0
+    for f in frames:
+        rgb, alpha = render_frame(gc, f, device, background_for(scene))
+        prob = shape.predict(f, rgb, alpha)
+        true, hull = f.mask > 0.5, silhouette(shape.grid, f)[0]
+        for k, sil in (("S", prob > 0.5), ("hull", hull), ("coarse", alpha[..., 0] > 0.5)):
+            iou[k].append(silhouette_scores(sil, true)["iou"])
+        total_excess += int((hull & ~true).sum())
+        total_true += int(true.sum())
+        for t in thresholds:
+            excess[t] += int((hull & ~true & (prob < t)).sum())
+            lost[t] += int((true & (prob < t)).sum())
+    return {"iou": {k: sum(v) / len(v) for k, v in iou.items()},
+            "under": {str(t): {"hull_excess": excess[t] / max(total_excess, 1), "object": lost[t] / max(total_true, 1)}
+                      for t in thresholds}}
+
+
 def bench_shape(mirror: str, root: str, objects: tuple[str, ...], preset: str, views: int, size: int = 200,
                 n_test: int = 32) -> dict:
     """Carving on against off on meshes the silhouette model never saw: each rendered by the corpus
     code (24 photos on the upper hemisphere, `n_test` test views over the whole sphere), `wgs all
     --no-carve`, then a copy of that workspace with carving (repair, fine and eval rerun). G_f's
-    PSNR and silhouette IoU per object, the hull's leave-one-out estimate, and the mean gains."""
+    PSNR and silhouette IoU per object, the hull's leave-one-out estimate, what S knows at the test
+    views (`silhouette_knowledge`), and the mean gains."""
     from .prior.corpus import build_object, extract, list_objects, snapshot_dir
 
     base = Path(root)
@@ -292,6 +335,7 @@ def bench_shape(mirror: str, root: str, objects: tuple[str, ...], preset: str, v
             row["leave_one_out_iou"] = (shape.get("leave_one_out") or {}).get("iou")
             row["hull_test_iou"] = (shape.get("hull_test") or {}).get("iou")
         row["gain_db"] = row["carve"]["psnr"] - row["no-carve"]["psnr"]
+        row["s_at_test_views"] = silhouette_knowledge(Workspace(base / name / "no-carve"))
         rows.append(row)
         print(f"shape: {name}: G_f {row['no-carve']['psnr']:.2f} -> {row['carve']['psnr']:.2f} dB, silhouette IoU "
               f"{row['no-carve']['silhouette_iou']:.3f} -> {row['carve']['silhouette_iou']:.3f}")
@@ -396,21 +440,25 @@ def object_psnr(ws: Workspace, masks_from: Workspace) -> dict[str, float]:
 
 
 def bench_masks(scene: str, root: str, preset: str, views: int, downscale: int) -> dict:
-    """`wgs all` on photos without masks, with automatic masks and with none, both scored by PSNR
-    inside the automatic test masks (`object_psnr`); wall times of each."""
+    """`wgs all` on photos without masks, with automatic masks (the default, which goes on without
+    masks where the views disagree) and with none, both scored by PSNR inside the automatic test
+    masks (`object_psnr`; masks made with `--mask-max-cut 1`, kept whatever the vote says); wall
+    times of each."""
     base = Path(root) / "masks"
+    yardstick = Workspace(base / "scoring_masks")
+    wgs_cli("-w", str(yardstick.root), "prepare", scene, "--views", str(views), "--downscale", str(downscale),
+            "--masks", "auto", "--mask-max-cut", "1")
     runs = {}
     for mode in ("auto", "none"):
         ws = base / mode
         t = wgs_cli("-w", str(ws), "all", scene, "--views", str(views), "--downscale", str(downscale),
                     "--masks", mode, "--preset", preset)
         runs[mode] = (Workspace(ws), t)
-    auto = runs["auto"][0]
     out = {"benchmark": "masks", "scene": scene, "preset": preset, "views": views, "downscale": downscale,
            "metric": "PSNR (dB) inside the automatic test masks, each model on its own background",
-           "masks": auto.manifest("scene")["summary"]["masks"]}
+           "masks": runs["auto"][0].manifest("scene")["summary"]["masks"]}
     for mode, (ws, t) in runs.items():
-        per = object_psnr(ws, auto)
+        per = object_psnr(ws, yardstick)
         out[mode] = {"object_psnr": statistics.fmean(per.values()), "per_view": per, "wgs_all_wall_s": round(t, 1),
                      "eval_psnr": json.loads(ws.output("eval", "results").read_text())["psnr"]}
     out["gain_db"] = out["auto"]["object_psnr"] - out["none"]["object_psnr"]

@@ -29,6 +29,8 @@ MEANING: dict[str, str] = {
     "masks": "Object masks: auto makes them where the scene has none (salient-object network + agreement "
              "between the posed views), none makes none, or a folder of masks named like the images.",
     "mask_agreement": "auto masks: share of the other views that must hold a voxel for it to stay object.",
+    "mask_max_cut": "auto masks: when agreement cuts more than this share of the network's object area, the "
+                    "views disagree on the object and the scene goes on without masks (1: always keep them).",
     # 3DGS training (coarse, fine)
     "iterations": "Training iterations.",
     "max_seconds": "Stop training after this many seconds.",

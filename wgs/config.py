@@ -37,6 +37,9 @@ class PrepareConfig:
     masks: str = "auto"
     mask_agreement: float = 0.85  # auto: a voxel stays object for a view when this share of the other views hold it
     mask_model: str | None = None  # auto: an ONNX salient-object model to use instead of the packaged U^2-Net-p
+    # auto: when agreement cuts more than this share of the network's object area (mean over the
+    # views), the views disagree on what the object is, and the scene goes on without masks
+    mask_max_cut: float = 0.3
 
 
 @dataclass
@@ -388,7 +391,8 @@ CHOICES: dict[str, tuple[str, ...]] = {"strategy": ("orm", "offline-rm", "loo"),
 # the allowed range of a numeric field, inclusive (None: open), whichever stage's config holds it
 RANGES: dict[str, tuple[float, float | None]] = {"views": (2, None), "downscale": (1, None), "sh_degree": (0, 3),
                                                  "ensemble": (1, None), "symmetries": (1, 8),
-                                                 "repair_gain_views": (0, None), "mask_agreement": (0.0, 1.0)}
+                                                 "repair_gain_views": (0, None), "mask_agreement": (0.0, 1.0),
+                                                 "mask_max_cut": (0.0, 1.0)}
 
 
 def check_choices(cfg: Any) -> None:

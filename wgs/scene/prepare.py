@@ -162,9 +162,14 @@ def prepare(scene: RawScene, cfg: PrepareConfig, out: Path) -> dict[str, Any]:
                                thread_count(), MASK_MIN_FRACTION)
         made.record["without_agreement"] = [names[k] for k in made.record["without_agreement"]]
         empty = [n for n, m in zip(names, made.masks, strict=True) if m.mean() < MASK_MIN_FRACTION]
+        cut = made.record["cut_by_agreement"]["mean"]
         if empty:  # the network saw no object there: the scene goes on as one without masks
             mask_info = {"source": "none", "auto_failed": f"the network found no object in {', '.join(empty)}",
                          **made.record}
+        elif cut > cfg.mask_max_cut:  # masks that disagree cost more than the hull gives
+            mask_info = {"source": "none", "auto_failed": f"the views disagree on the object: agreement cut "
+                         f"{100 * cut:.0f} % of the network's object area (over mask_max_cut "
+                         f"{100 * cfg.mask_max_cut:.0f} %)", **made.record}
         else:
             masks, mask_info = made.masks, {"source": "auto", **made.record}
             write_png(path_in(out, "masks_sheet.png"), mask_sheet(images[: len(scene.train)],

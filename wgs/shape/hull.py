@@ -9,8 +9,10 @@ real mask pixel covered.
 
 from __future__ import annotations
 
+import hashlib
 import io
 import math
+from collections import OrderedDict
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -120,12 +122,39 @@ def default_tolerance(num_views: int) -> int:
     return 1 if num_views >= 3 else 0
 
 
+# The stages of one run (coarse init, repair, fine init, eval's scores) ask for the same few hulls;
+# each projects R³ voxel centres into every view, so a process keeps the last few by content.
+HULLS_KEPT = 8
+_hulls: OrderedDict[bytes, tuple[HullGrid, torch.Tensor]] = OrderedDict()
+
+
+def _hull_key(frames, resolution: int, extent: float, near: float, tolerate: int) -> bytes:
+    """Digest of everything a hull depends on: the frames' cameras, masks and colours, and the grid."""
+    h = hashlib.blake2b(np.array([resolution, extent, near, tolerate], np.float64).tobytes(), digest_size=20)
+    for f in frames:
+        h.update(np.array([f.width, f.height], np.int64).tobytes())
+        for t in (f.viewmat, f.K, f.mask, f.image):
+            h.update(t.detach().to("cpu", torch.float32).contiguous().numpy().tobytes())
+    return h.digest()
+
+
 def visual_hull_grid(frames, resolution: int = 96, extent: float = 1.0, near: float = 0.01,
                      tolerate: int | None = None) -> tuple[HullGrid, torch.Tensor]:
     """The hull of the frames' masks over [-extent, extent]³: a 32³ pass finds its bounding box, a
-    second carves that box at `resolution`. Returns the grid and the voxels' mean colours [R³, 3];
-    raises InputError when it is empty."""
+    second carves that box at `resolution`. Returns the grid and the voxels' mean colours [R³, 3]
+    (copies: callers may change them); raises InputError when it is empty."""
     tolerate = default_tolerance(len(frames)) if tolerate is None else tolerate
+    key = _hull_key(frames, resolution, extent, near, tolerate)
+    if key not in _hulls:
+        _hulls[key] = _carve_hull(frames, resolution, extent, near, tolerate)
+        while len(_hulls) > HULLS_KEPT:
+            _hulls.popitem(last=False)
+    _hulls.move_to_end(key)
+    grid, colours = _hulls[key]
+    return HullGrid(grid.lo.clone(), grid.hi.clone(), grid.occ.clone()), colours.clone()
+
+
+def _carve_hull(frames, resolution: int, extent: float, near: float, tolerate: int) -> tuple[HullGrid, torch.Tensor]:
     need = len(frames) - tolerate
     lo, hi = torch.full((3,), -extent), torch.full((3,), extent)
     coarse = 32
