@@ -264,11 +264,12 @@ def silhouette_knowledge(ws: Workspace, thresholds: tuple[float, ...] = S_THRESH
     threshold t the share of the hull's excess where S says under t (what carving at t could
     remove) against the share of the true object there (what it would wrongly remove)."""
     from .config import RepairConfig
+    from .gaussians.splats import load_checkpoint
     from .gaussians.trainer import render_frame
     from .shape.hull import silhouette
     from .shape.scores import silhouette_scores
     from .stages.s4_repair import silhouette_predictor
-    from .stages.shared import background_for, coarse_members
+    from .stages.shared import background_for
 
     scene = load_prepared(ws.output("scene", "prepared"), load_test_images=True)
     device = torch.device("cpu")
@@ -276,13 +277,13 @@ def silhouette_knowledge(ws: Workspace, thresholds: tuple[float, ...] = S_THRESH
     frames = [f for f in scene.test if f.mask is not None]
     if shape is None or not frames:
         return {}
-    gc = coarse_members(ws, scene, device)[0]
+    gc, bg = load_checkpoint(ws.output("coarse", "model"), scene.norm, device)[0], background_for(scene)
     iou = {"S": [], "hull": [], "coarse": []}
     excess = {t: 0 for t in thresholds}
     lost = {t: 0 for t in thresholds}
     total_excess = total_true = 0
     for f in frames:
-        rgb, alpha = render_frame(gc, f, device, background_for(scene))
+        rgb, alpha = render_frame(gc, f, device, bg)
         prob = shape.predict(f, rgb, alpha)
         true, hull = f.mask > 0.5, silhouette(shape.grid, f)[0]
         for k, sil in (("S", prob > 0.5), ("hull", hull), ("coarse", alpha[..., 0] > 0.5)):

@@ -146,7 +146,7 @@ def visual_hull_grid(frames, resolution: int = 96, extent: float = 1.0, near: fl
     tolerate = default_tolerance(len(frames)) if tolerate is None else tolerate
     key = _hull_key(frames, resolution, extent, near, tolerate)
     if key not in _hulls:
-        _hulls[key] = _carve_hull(frames, resolution, extent, near, tolerate)
+        _hulls[key] = _build_hull(frames, resolution, extent, near, tolerate)
         while len(_hulls) > HULLS_KEPT:
             _hulls.popitem(last=False)
     _hulls.move_to_end(key)
@@ -154,7 +154,7 @@ def visual_hull_grid(frames, resolution: int = 96, extent: float = 1.0, near: fl
     return HullGrid(grid.lo.clone(), grid.hi.clone(), grid.occ.clone()), colours.clone()
 
 
-def _carve_hull(frames, resolution: int, extent: float, near: float, tolerate: int) -> tuple[HullGrid, torch.Tensor]:
+def _build_hull(frames, resolution: int, extent: float, near: float, tolerate: int) -> tuple[HullGrid, torch.Tensor]:
     need = len(frames) - tolerate
     lo, hi = torch.full((3,), -extent), torch.full((3,), extent)
     coarse = 32
