@@ -176,3 +176,16 @@ def test_a_view_whose_mask_is_all_wrong_takes_what_the_others_call_object(blende
     assert not (supported(frames, wrong, resolution=64)[0] & wrong[0]).any()  # the others support none of it
     theirs = supported(frames, wrong, resolution=64, own=False)[0]
     assert (theirs & truth[0]).sum() >= 0.97 * truth[0].sum()  # fatter than the object, but all of it
+
+
+def test_the_report_says_where_the_masks_came_from_or_why_there_are_none():
+    from types import SimpleNamespace
+
+    from wgs.stages.s6_eval import masks_note
+
+    assert "automatic" in masks_note(SimpleNamespace(info={"masks": {"source": "auto"}}))
+    failed = {"source": "none", "auto_failed": "the views disagree on the object: agreement cut 47 %"}
+    note = masks_note(SimpleNamespace(info={"masks": failed}))
+    assert note.startswith("No masks") and "disagree" in note and "--masks DIR" in note
+    for plain in ({"source": "given"}, {"source": "none"}, {}):
+        assert masks_note(SimpleNamespace(info={"masks": plain})) is None

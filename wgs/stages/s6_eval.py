@@ -142,11 +142,16 @@ def shape_reference(scene, frames: list[Frame], resolution: int) -> dict[str, An
 
 
 def masks_note(scene) -> str | None:
-    """Where the test masks came from, when wgs made them: the truth is composited with them."""
-    if (scene.info.get("masks") or {}).get("source") != "auto":
-        return None
-    return ("The masks are automatic (`wgs prepare --masks auto`): the test views' ground truth is composited "
-            "with them, so these scores measure against wgs's own idea of the object's outline.")
+    """Where the masks came from when wgs made them (the truth is composited with them), or why the
+    automatic ones were not used."""
+    masks = scene.info.get("masks") or {}
+    if masks.get("source") == "auto":
+        return ("The masks are automatic (`wgs prepare --masks auto`): the test views' ground truth is composited "
+                "with them, so these scores measure against wgs's own idea of the object's outline.")
+    if masks.get("auto_failed"):
+        return (f"No masks: the automatic ones were not used ({masks['auto_failed']}), so there is no visual hull "
+                "and no silhouette score; `wgs prepare --masks DIR` takes yours.")
+    return None
 
 
 def shape_line(coarse: dict, fine: dict, shape: dict) -> str:
