@@ -95,7 +95,7 @@ def test_finetune_trains_and_saves_d_and_u(coarse_ws, tmp_path):
         load_model(d / "U")
     for k in ("l1_before", "l1_after", "psnr_before", "psnr_after"):
         assert torch.isfinite(torch.tensor(m["heldout"][k]))
-    # --prior none: today's from-scratch denoising D (SDEdit at repair time), its own width
+    # --prior none: the from-scratch denoising D (SDEdit at repair time), its own width
     invoke("-w", str(ws.root), "finetune", "--preset", "fast", "--d-steps", "10", "--u-max-steps", "10",
            "--prior", "none")
     cfg = load_model(d / "D")[1]
