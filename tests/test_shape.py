@@ -76,6 +76,20 @@ def test_hull_silhouette_is_the_mask_at_training_cameras_and_holds_the_object_el
         assert s["missed"] < 0.02 and 0.0 < s["excess"] < 0.3
 
 
+def test_hull_keeps_parts_thinner_than_its_first_pass_cells():
+    """The first pass (32³ over the extent) only finds the hull's box; a thin part that none of its
+    cell centres falls in must still be inside the box the second pass carves."""
+    def lollipop(p):  # a ball of radius 0.12 and a 0.04-thick stick to x = 0.45
+        stick = (p[:, 0] > 0.0) & (p[:, 0] < 0.45) & (p[:, 1].abs() < 0.02) & (p[:, 2].abs() < 0.02)
+        return (p.norm(dim=-1) < 0.12) | stick
+
+    frames = frames_of(lollipop, [camera(a, e, distance=1.5) for a, e in ((30, 20), (120, 10), (210, 25), (300, 15))])
+    grid, _ = visual_hull_grid(frames, resolution=64, extent=1.0, tolerate=0)
+    assert grid.hi[0] > 0.45
+    for f in frames:
+        assert silhouette_scores(silhouette(grid, f)[0], f.mask > 0.5)["missed"] < 0.01
+
+
 def test_a_kept_hull_is_the_same_hull_and_a_copy(mug_hull):
     side, grid = mug_hull
     again, colours = visual_hull_grid(side, resolution=64, extent=0.7, tolerate=0)

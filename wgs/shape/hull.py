@@ -154,6 +154,19 @@ def visual_hull_grid(frames, resolution: int = 96, extent: float = 1.0, near: fl
     return HullGrid(grid.lo.clone(), grid.hi.clone(), grid.occ.clone()), colours.clone()
 
 
+BOX_GROWTH_STEPS = 6  # each step grows a touched side by half the box
+
+
+def _carve_box(frames, lo: torch.Tensor, hi: torch.Tensor, resolution: int, near: float, need: int
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Occupancy [R, R, R] of the box's voxels whose centres `need` masks hold, and their colours."""
+    votes, colours = mask_votes(frames, grid_centres(lo, hi, resolution), near)
+    occ = (votes >= need).reshape(resolution, resolution, resolution)
+    if not occ.any():
+        raise InputError(EMPTY_HULL)
+    return occ, colours
+
+
 def _build_hull(frames, resolution: int, extent: float, near: float, tolerate: int) -> tuple[HullGrid, torch.Tensor]:
     need = len(frames) - tolerate
     lo, hi = torch.full((3,), -extent), torch.full((3,), extent)
@@ -164,10 +177,24 @@ def _build_hull(frames, resolution: int, extent: float, near: float, tolerate: i
     if kept.shape[0]:
         cell = (hi - lo) / coarse
         lo, hi = torch.maximum(kept.min(0).values - cell, lo), torch.minimum(kept.max(0).values + cell, hi)
-    votes, colours = mask_votes(frames, grid_centres(lo, hi, resolution), near)
-    occ = (votes >= need).reshape(resolution, resolution, resolution)
-    if not occ.any():
-        raise InputError(EMPTY_HULL)
+    # A part thinner than the first pass's cells holds none of their centres, so that box can cut
+    # it: a side of the box that the hull touches grows (within the extent) until none does, and
+    # the hull is then carved again in its own box, at the finest cells.
+    grown = False
+    for _ in range(BOX_GROWTH_STEPS):
+        occ, colours = _carve_box(frames, lo, hi, resolution, near, need)
+        touch_lo = torch.stack([occ[0].any(), occ[:, 0].any(), occ[:, :, 0].any()]) & (lo > -extent)
+        touch_hi = torch.stack([occ[-1].any(), occ[:, -1].any(), occ[:, :, -1].any()]) & (hi < extent)
+        if not (touch_lo.any() or touch_hi.any()):
+            break
+        grown, step = True, 0.5 * (hi - lo)
+        lo = torch.where(touch_lo, (lo - step).clamp_min(-extent), lo)
+        hi = torch.where(touch_hi, (hi + step).clamp_max(extent), hi)
+    if grown:
+        cell, idx = (hi - lo) / resolution, occ.nonzero()
+        lo, hi = (torch.maximum(lo + (idx.min(0).values - 1) * cell, torch.full_like(lo, -extent)),
+                  torch.minimum(lo + (idx.max(0).values + 2) * cell, torch.full_like(hi, extent)))
+        occ, colours = _carve_box(frames, lo, hi, resolution, near, need)
     return HullGrid(lo, hi, occ), colours
 
 
