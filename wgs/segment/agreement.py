@@ -13,8 +13,9 @@ import math
 
 import torch
 
+from ..errors import InputError
 from ..scene.camera import Camera
-from ..shape.hull import HullGrid, grid_centres, pixel_lookup, silhouette
+from ..shape.hull import HullGrid, grid_centres, kept_box, pixel_lookup, silhouette
 
 
 def votes_per_view(cameras: list[Camera], masks: list[torch.Tensor], points: torch.Tensor
@@ -45,16 +46,16 @@ def supported(cameras: list[Camera], masks: list[torch.Tensor], agreement: float
     normalised frame, where the object lies inside [-extent, extent]³. The grid's silhouettes are
     drawn at most `longest` pixels wide and scaled up (a voxel spans many pixels of a large photo).
     `own` False: the voxels need not be in view i's own mask (what the others alone say is object)."""
-    lo, hi = torch.full((3,), -extent), torch.full((3,), extent)
-    # a coarse pass finds the region any view could call object, the fine one votes inside it
-    pts = grid_centres(lo, hi, 32)
-    inside, _ = votes_per_view(cameras, masks, pts)
-    kept = pts[inside.sum(0) >= max(2, math.ceil(agreement * (len(cameras) - 1)))]
-    if kept.shape[0]:
-        cell = (hi - lo) / 32
-        lo, hi = torch.maximum(kept.min(0).values - cell, lo), torch.minimum(kept.max(0).values + cell, hi)
-    pts = grid_centres(lo, hi, resolution)
-    inside, seen = votes_per_view(cameras, masks, pts)
+    def votes_at(points):  # the region any view could call object: the box of the vote
+        inside, seen = votes_per_view(cameras, masks, points)
+        return inside.sum(0), (inside, seen)
+
+    need = max(2, math.ceil(agreement * (len(cameras) - 1)))
+    try:
+        lo, hi, (_, (inside, seen)) = kept_box(votes_at, need, resolution, extent)
+    except InputError:  # no region that many views hold: each view's own vote over the whole extent
+        lo, hi = torch.full((3,), -extent), torch.full((3,), extent)
+        inside, seen = votes_at(grid_centres(lo, hi, resolution))[1]
     n_in, n_seen = inside.sum(0), seen.sum(0)
     out = []
     for v, cam in enumerate(cameras):

@@ -155,34 +155,31 @@ def visual_hull_grid(frames, resolution: int = 96, extent: float = 1.0, near: fl
 
 
 BOX_GROWTH_STEPS = 6  # each step grows a touched side by half the box
+FIRST_PASS = 32  # cells per side of the pass over the whole extent that finds the box
 
 
-def _carve_box(frames, lo: torch.Tensor, hi: torch.Tensor, resolution: int, near: float, need: int
-               ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Occupancy [R, R, R] of the box's voxels whose centres `need` masks hold, and their colours."""
-    votes, colours = mask_votes(frames, grid_centres(lo, hi, resolution), near)
-    occ = (votes >= need).reshape(resolution, resolution, resolution)
-    if not occ.any():
-        raise InputError(EMPTY_HULL)
-    return occ, colours
+def kept_box(votes_at, need: int, resolution: int, extent: float = 1.0):
+    """The box of what the votes keep, and the last pass's result at `resolution` cells per side.
 
-
-def _build_hull(frames, resolution: int, extent: float, near: float, tolerate: int) -> tuple[HullGrid, torch.Tensor]:
-    need = len(frames) - tolerate
+    votes_at(points [N, 3]) -> (votes [N] int, anything): a point is kept with `need` votes.
+    A 32³ pass over [-extent, extent]³ finds a first box. A part thinner than its cells (a leg, a
+    handle) holds none of their centres, so that box can cut it: while the kept voxels touch a side,
+    that side grows by half the box (within the extent), and the box is then made tight around them.
+    Returns lo [3], hi [3] and votes_at's result at grid_centres(lo, hi, resolution); raises
+    InputError when nothing is kept.
+    """
     lo, hi = torch.full((3,), -extent), torch.full((3,), extent)
-    coarse = 32
-    pts = grid_centres(lo, hi, coarse)
-    votes, _ = mask_votes(frames, pts, near)
-    kept = pts[votes >= need]
+    pts = grid_centres(lo, hi, FIRST_PASS)
+    kept = pts[votes_at(pts)[0] >= need]
     if kept.shape[0]:
-        cell = (hi - lo) / coarse
+        cell = (hi - lo) / FIRST_PASS
         lo, hi = torch.maximum(kept.min(0).values - cell, lo), torch.minimum(kept.max(0).values + cell, hi)
-    # A part thinner than the first pass's cells holds none of their centres, so that box can cut
-    # it: a side of the box that the hull touches grows (within the extent) until none does, and
-    # the hull is then carved again in its own box, at the finest cells.
     grown = False
     for _ in range(BOX_GROWTH_STEPS):
-        occ, colours = _carve_box(frames, lo, hi, resolution, near, need)
+        result = votes_at(grid_centres(lo, hi, resolution))
+        occ = (result[0] >= need).reshape(resolution, resolution, resolution)
+        if not occ.any():
+            raise InputError(EMPTY_HULL)
         touch_lo = torch.stack([occ[0].any(), occ[:, 0].any(), occ[:, :, 0].any()]) & (lo > -extent)
         touch_hi = torch.stack([occ[-1].any(), occ[:, -1].any(), occ[:, :, -1].any()]) & (hi < extent)
         if not (touch_lo.any() or touch_hi.any()):
@@ -194,7 +191,16 @@ def _build_hull(frames, resolution: int, extent: float, near: float, tolerate: i
         cell, idx = (hi - lo) / resolution, occ.nonzero()
         lo, hi = (torch.maximum(lo + (idx.min(0).values - 1) * cell, torch.full_like(lo, -extent)),
                   torch.minimum(lo + (idx.max(0).values + 2) * cell, torch.full_like(hi, extent)))
-        occ, colours = _carve_box(frames, lo, hi, resolution, near, need)
+        result = votes_at(grid_centres(lo, hi, resolution))
+    return lo, hi, result
+
+
+def _build_hull(frames, resolution: int, extent: float, near: float, tolerate: int) -> tuple[HullGrid, torch.Tensor]:
+    need = len(frames) - tolerate
+    lo, hi, (votes, colours) = kept_box(lambda pts: mask_votes(frames, pts, near), need, resolution, extent)
+    occ = (votes >= need).reshape(resolution, resolution, resolution)
+    if not occ.any():
+        raise InputError(EMPTY_HULL)
     return HullGrid(lo, hi, occ), colours
 
 
