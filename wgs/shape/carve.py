@@ -21,12 +21,13 @@ from .hull import HullGrid, box_rays, march, pixel_lookup, silhouette
 class CarveParams:
     """Thresholds of `carve`, the one place their defaults live."""
 
-    empty_below: float = 0.1  # a pixel calls a voxel background when its object probability is under this
+    empty_below: float = 0.3  # a pixel calls a voxel background when its object probability is under this
     dilate_px: int = 2  # predicted silhouettes are grown by this many pixels first
     min_views: int = 2  # pseudo views that must call a voxel background
-    # ... and at least this fraction of the pseudo views that see it (a voxel outside the object is
-    # outside the silhouettes of the views that see it in profile, often a minority)
-    min_fraction: float = 0.2
+    # ... and at least this fraction of the pseudo views that see it (0: min_views decides alone; a
+    # voxel outside the object is outside the silhouettes of the views that see it in profile, often
+    # a minority)
+    min_fraction: float = 0.0
     max_carve: float = 0.5  # at most this fraction of the hull's voxels goes in one call
 
 
