@@ -63,12 +63,15 @@ prior_eval_every = 2
 [repair]
 steps = 2
 num_views = 16
+hull_resolution = 32
 [fine]
 iterations = 20
 refine_start = 5
 refine_every = 5
+hull_resolution = 32
 [eval]
 turntable_frames = 8
+hull_resolution = 32
 """
 
 from make_scene import make_scene  # noqa: E402

@@ -50,7 +50,7 @@ def test_ablate_all_rows(tmp_path):
     by = {r["row"]: r for r in data["rows"]}
     assert math.isfinite(by["orm-wavelet-u-prior"]["repair_gain_db"]) and by["3dgs"]["repair_gain_db"] is None
     assert "PSNR(orm-wavelet-u-prior) - PSNR(orm-wavelet-u)" in md
-    # the carving row differs from the prior row only from the repair on: S carves there, not in the other
+    # the carving row differs from the prior row only from the repair on: it carves, the other does not
     assert Workspace(root / "orm-wavelet-u-prior-carve").manifest("repair").get("carving") is not None
     assert Workspace(root / "orm-wavelet-u-prior").manifest("repair").get("carving") is None
 

@@ -299,30 +299,45 @@ def test_fine_records_whether_its_lpips_term_ran(tiny):
     assert term["used"] is False and "not found" in term["why"]
 
 
-def test_silhouette_model_carves_the_hull_and_fine_starts_there(tiny, tmp_path):
-    """With an S at hand (here one that calls everything background), the repair stage writes S's
-    silhouettes and a carved hull that still covers every real mask pixel, and G_f starts from it."""
+def sure_background_model(kind: str):
+    """A tiny S or V that calls everything background, and sure of it."""
     import torch
 
     from wgs.models.silhouette_net import SilhouetteNet, SilhouetteNetConfig
+    from wgs.models.volume_net import VolumeNet, VolumeNetConfig
+
+    if kind == "S":
+        net = SilhouetteNet(SilhouetteNetConfig(channels=8))
+        last = net.out
+    else:
+        net = VolumeNet(VolumeNetConfig(channels=8, resolution=16))
+        last = net.head[-1]
+    torch.nn.init.zeros_(last.weight)
+    torch.nn.init.constant_(last.bias, -8.0)
+    return net
+
+
+@pytest.mark.parametrize("kind, setting, record", [("S", "silhouette_model", "carving"),
+                                                   ("V", "volume_model", "volume_carving")])
+def test_a_carving_model_carves_the_hull_and_fine_starts_there(tiny, tmp_path, kind, setting, record):
+    """With an S or a V at hand (here one that calls everything background), the repair stage writes
+    the pseudo views' silhouettes and a carved hull that still covers every real mask pixel, and G_f
+    starts from it."""
     from wgs.models.storage import save_model
     from wgs.scene.dataset import load_prepared
     from wgs.shape.hull import load_grid, silhouette, visual_hull_grid
 
     scene, cfg, ws0, _ = tiny
-    net = SilhouetteNet(SilhouetteNetConfig(channels=8))
-    torch.nn.init.zeros_(net.out.weight)
-    torch.nn.init.constant_(net.out.bias, -8.0)  # background everywhere, sure of it
-    save_model(tmp_path / "S", net)
+    save_model(tmp_path / kind, sure_background_model(kind))
     ws = Workspace(tmp_path / "ws")
     shutil.copytree(ws0.root, ws.root)
     cfg2 = tmp_path / "wgs.toml"
-    cfg2.write_text(cfg.read_text().replace("[repair]\n", f"[repair]\nsilhouette_model = '{tmp_path / 'S'}'\n"))
+    cfg2.write_text(cfg.read_text().replace("[repair]\n", f"[repair]\n{setting} = '{tmp_path / kind}'\n"))
     run_all(cfg2, ws.root, scene)
     views = json.loads(ws.output("repair", "views").read_text())["views"]
     assert all((ws.stage_dir("repair") / v["silhouette"]).is_file() for v in views)
-    counts = ws.manifest("repair")["carving"]
-    assert counts["carved"] > 0 and counts["restored"] > 0  # S wanted it all; the real masks kept some
+    counts = ws.manifest("repair")[record]
+    assert counts["carved"] > 0 and counts["restored"] > 0  # the model wanted it all; the real masks kept some
     assert ws.manifest("fine")["start"] == "carved hull"
     prepared = load_prepared(ws.stage_dir("scene"))
     carved = load_grid(ws.output("repair", "carved_hull"))

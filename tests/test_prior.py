@@ -185,6 +185,33 @@ def test_corpus_pairs_train_chain(tmp_path):
     assert 0 <= curve["val"][-1]["S_iou"] <= 1 and curve["val"][-1]["hull_missed"] < 0.05
 
 
+def test_volume_pairs_train_chain(tmp_path):
+    """One procedural object -> Blender scene -> (few-view hull, many-view hull) cubes -> a few V steps."""
+    from wgs.models.volume_net import VolumeNet, VolumeNetConfig
+    from wgs.prior.corpus import build_object, procedural_objects
+    from wgs.prior.train_volume import VolumeTrainConfig, load_volume_pairs, train_volume
+    from wgs.prior.volume_pairs import object_volume_pairs
+
+    obj = procedural_objects(1)[0]
+    scene = tmp_path / "obj"
+    build_object(obj, tmp_path, scene, 32, 8, 4)
+    arrays = object_volume_pairs(scene, tmp_path / "ws", subsets=3, resolution=16)
+    assert arrays["x"].shape == (3, 4, 16, 16, 16) and arrays["y"].shape == (3, 16, 16, 16)
+    hull, target = arrays["x"][:, 0] > 0.5, arrays["y"] > 0
+    assert target.any() and not (target & ~hull).any()  # more views, less hull
+    pairs = tmp_path / "volume_pairs"
+    pairs.mkdir()
+    for name, hold in (("a", False), ("b", True), ("cow-like", False)):
+        np.savez_compressed(pairs / f"{name}.npz", **arrays, holdout=np.bool_(hold))
+    data = load_volume_pairs(pairs, exclude=("cow*",))
+    assert data["names"] == ["a", "b"] and int(data["holdout"].sum()) == 3
+    cfg = VolumeTrainConfig(net=VolumeNetConfig(channels=8, levels=1, resolution=16), steps=3, batch=2, eval_every=2)
+    V, curve = train_volume(data, cfg, torch.device("cpu"), log=lambda m: None)
+    assert isinstance(V, VolumeNet) and curve["step"] == [2, 3]
+    held = curve["val"][-1]
+    assert all(0 <= held[k] <= 1 for k in ("V_iou", "hull_iou", "excess_cut", "object_lost"))
+
+
 def test_prior_finetune_keeps_the_prior_unless_beaten():
     from wgs.config import FinetuneConfig
     from wgs.models.storage import load_model

@@ -203,3 +203,76 @@ def test_hull_channels_depth_is_centred(mug_hull):
     # first hits lie within half the box's diagonal of its centre, most of them before it
     front = depth[hull == 1]
     assert (front.abs() <= 1).all() and front.median() < 0
+
+
+def test_volume_net_tiny_config_gives_a_probability_per_occupied_voxel(mug_hull):
+    from wgs.models.volume_net import VolumeNet, VolumeNetConfig
+    from wgs.shape.volume import occupied_probability
+
+    side, grid = mug_hull
+    for levels in (1, 2):
+        net = VolumeNet(VolumeNetConfig(channels=8, levels=levels, resolution=16)).eval()
+        assert net(torch.rand(2, 4, 16, 16, 16)).shape == (2, 1, 16, 16, 16)
+        prob = occupied_probability(net, side, grid)
+        assert prob.shape == (int(grid.occ.sum()),) and ((prob >= 0) & (prob <= 1)).all()
+
+
+def test_volume_inputs_hold_the_strict_hull_and_do_not_depend_on_image_size(mug_hull):
+    from wgs.shape.hull import mask_votes
+    from wgs.shape.volume import cube_around, volume_inputs
+
+    side, grid = mug_hull
+    box = cube_around(grid, 24)
+    x = volume_inputs(side, box)
+    votes, _ = mask_votes(side, box.centres())
+    assert torch.equal(x[0].reshape(-1) > 0.5, votes == len(side))
+    assert ((x[1] > 0) == (x[0] > 0.5)).all() and (x[2] >= x[1]).all() and (x[3] == len(side) / 8).all()
+    # the same views at twice the pixels: the scaled mask distances agree to about a pixel
+    big = [Frame(torch.diag(torch.tensor([2.0, 2.0, 1.0])) @ f.K, f.viewmat, 2 * SIZE, 2 * SIZE, name=f.name,
+                 mask=f.mask.repeat_interleave(2, 0).repeat_interleave(2, 1)) for f in side]
+    x2 = volume_inputs(big, box)
+    inside = x[0] > 0.5
+    assert (x2[1] - x[1])[inside].abs().median() < 0.03
+
+
+def test_volume_target_is_inside_the_few_view_hull(mug_hull):
+    from wgs.shape.volume import cube_around, volume_inputs, volume_target
+
+    side, grid = mug_hull
+    more = side + frames_of(mug, [camera(10, 89.0), camera(10, -89.0), camera(45, 45.0)])
+    box = cube_around(grid, 24)
+    hull, target = volume_inputs(side, box)[0] > 0.5, volume_target(more, box) > 0.5
+    assert not (target & ~hull).any() and target.sum() < 0.97 * hull.sum()  # the new views cut some corners
+
+
+def test_volume_carving_toward_truth_keeps_the_handle_and_the_real_masks(mug_hull):
+    from wgs.shape.carve import carve_volume
+
+    side, grid = mug_hull
+    centres = grid.centres()[grid.occ.reshape(-1)]
+    truth = mug(centres).float()  # a V that is right
+    carved, counts = carve_volume(grid, truth, side, CarveParams(max_carve=1.0))
+    top, bottom = camera(10, 89.0), camera(10, -89.0)
+    for c in (top, bottom):
+        before = silhouette_scores(silhouette(grid, c)[0], true_mask(mug, c))["iou"]
+        after = silhouette_scores(silhouette(carved, c)[0], true_mask(mug, c))["iou"]
+        assert after > before + 0.08 and after > 0.88, (before, after)
+    handle = (mug(centres) & (centres[:, 0] > 0.31))
+    assert handle.sum() > 20 and carved.occ.reshape(-1)[grid.occ.reshape(-1)][handle].all()
+    gen = torch.Generator().manual_seed(1)
+    wrong, counts = carve_volume(grid, torch.rand(centres.shape[0], generator=gen), side,
+                                 CarveParams(max_carve=1.0, volume_empty_below=0.5))
+    assert counts["carved"] > 0 and counts["restored"] > 0
+    for f in side:
+        was = silhouette(grid, f)[0] & (f.mask > 0.5)
+        assert not (was & ~silhouette(wrong, f)[0]).any()
+
+
+def test_volume_augment_turns_inputs_and_target_alike():
+    from wgs.prior.train_volume import augment
+
+    gen = torch.Generator().manual_seed(0)
+    x = torch.rand(3, 4, 8, 8, 8)
+    for _ in range(6):
+        xa, ya = augment(x, x[:, 0].clone(), gen)
+        assert torch.equal(xa[:, 0], ya) and sorted(xa.flatten().tolist()) == sorted(x.flatten().tolist())

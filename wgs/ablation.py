@@ -32,7 +32,7 @@ class Row:
     use_u: bool = False
     levels: int = 1
     prior: str = "none"  # the paper's rows train D from scratch; the prior row starts from the shipped prior
-    carve: bool = False  # the silhouette model S carves the hull (not in the paper; the product's default)
+    carve: bool = False  # V and S carve the hull (not in the paper; the product's default)
     label: dict[str, bool] = field(default_factory=dict)
 
     def overrides(self) -> dict[str, dict[str, Any]]:

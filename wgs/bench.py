@@ -268,14 +268,14 @@ def silhouette_knowledge(ws: Workspace, thresholds: tuple[float, ...] = S_THRESH
     from .gaussians.trainer import render_frame
     from .shape.hull import silhouette
     from .shape.scores import silhouette_scores
-    from .stages.s4_repair import silhouette_predictor
+    from .stages.s4_repair import shape_models
     from .stages.shared import background_for
 
     scene = load_prepared(ws.output("scene", "prepared"), load_test_images=True)
     device = torch.device("cpu")
-    shape = silhouette_predictor(scene, RepairConfig(), device)
+    shape = shape_models(scene, RepairConfig(), device)
     frames = [f for f in scene.test if f.mask is not None]
-    if shape is None or not frames:
+    if shape is None or shape.silhouette_model is None or not frames:
         return {}
     gc, bg = load_checkpoint(ws.output("coarse", "model"), scene.norm, device)[0], background_for(scene)
     iou = {"S": [], "hull": [], "coarse": []}

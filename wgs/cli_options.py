@@ -57,7 +57,7 @@ MEANING: dict[str, str] = {
     "strength": "SDEdit strength (noise level) of a from-scratch D's repair (a prior's D runs one step).",
     "steps": "DDIM steps of a from-scratch D's repair.",
     "views_per_train": "Novel viewpoints per training view (arc poses).",
-    "carve": "The silhouette model S carves the visual hull at the pseudo views.",
+    "carve": "The volume model V and the silhouette model S carve the visual hull.",
     # fine
     "rounds": "Rounds of repair + refinement: each later one repairs the refined model's renders again.",
     "start": "Train G_f from the visual hull or from G_c (auto: the hull when the scene has masks).",

@@ -142,8 +142,8 @@ class FinetuneConfig:
 
 @dataclass
 class RepairConfig(CarveParams):
-    """Pseudo references at novel poses, and the silhouette model S's carving of the visual hull
-    there (its thresholds come from `shape.carve.CarveParams`)."""
+    """Pseudo references at novel poses, and the carving of the visual hull by the volume model V and
+    the silhouette model S (the thresholds come from `shape.carve.CarveParams`)."""
 
     poses: str = "sphere"  # sphere: a Fibonacci band over the view sphere; arc: between neighbouring training views
     num_views: int = 24  # sphere: pseudo views in all
@@ -159,11 +159,12 @@ class RepairConfig(CarveParams):
     # D repairs each render under this many flips / transposes of it (1..8), averaged; ensemble
     # members take different ones, so D's errors differ between them
     symmetries: int = 1
-    # S predicts the object's silhouette at each pseudo view; the visual hull (every mask agreeing)
-    # is carved where S is sure of background, G_f starts from the carved hull and learns opacity
-    # at the pseudo views from S. Needs masks and S's weights
+    # The visual hull (every mask agreeing) is carved where the volume model V is sure of background,
+    # then where the silhouette model S is sure at the pseudo views; G_f starts from the carved hull
+    # and learns opacity at the pseudo views inside its outline. Needs masks and V's or S's weights
     carve: bool = True
     silhouette_model: str = "builtin"  # builtin: wgs/prior/weights/S; or a folder holding S
+    volume_model: str = "builtin"  # builtin: wgs/prior/weights/V; or a folder holding V
     hull_resolution: int = TrainConfig.hull_resolution  # voxels along the carved hull's box
     carve_views: int = 32  # S also predicts at this many views over the whole sphere, for carving only
 

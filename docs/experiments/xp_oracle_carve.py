@@ -12,6 +12,8 @@ import shutil
 import sys
 from pathlib import Path
 
+import torch
+
 import wgs.stages.s4_repair as repair
 from wgs.cli import main
 from wgs.scene.dataset import load_prepared
@@ -21,9 +23,9 @@ from wgs.workspace import Workspace
 ORACLE_RESOLUTION = 160
 
 
-def oracle_predictor(ws: Path, make_s):
+def oracle_predictor(ws: Path, make_models):
     def predictor(scene, cfg, device):
-        s = make_s(scene, cfg, device)  # keeps the stage's own checks and the strict 4-view hull
+        s = make_models(scene, cfg, device)  # keeps the stage's own checks and the strict 4-view hull
         if s is None:
             return None
         full = load_prepared(ws / "scene", load_test_images=True)
@@ -31,13 +33,11 @@ def oracle_predictor(ws: Path, make_s):
         every_mask, _ = visual_hull_grid(frames, ORACLE_RESOLUTION, tolerate=0)
         print(f"oracle: the hull of {len(frames)} true masks stands in for S", flush=True)
 
-        class Oracle:
-            grid = s.grid
-
+        class Oracle(repair.ShapeModels):
             def predict(self, camera, render, alpha):
                 return silhouette(every_mask, camera)[0].float()
 
-        return Oracle()
+        return Oracle(s.grid, silhouette_model=torch.nn.Identity(), volume_model=None)
 
     return predictor
 
@@ -48,7 +48,7 @@ if __name__ == "__main__":
     ws = root / name / f"oracle-{tag}"
     if not ws.exists():
         shutil.copytree(root / name / "no-carve", ws)
-    repair.silhouette_predictor = oracle_predictor(ws, repair.silhouette_predictor)
+    repair.shape_models = oracle_predictor(ws, repair.shape_models)
     try:
         main(["-w", str(ws), *(["--config", config[0]] if config else []), "all", str(root / "scenes" / name),
               "--views", "4", "--preset", "fast", "--carve"])

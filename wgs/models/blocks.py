@@ -49,3 +49,18 @@ def pad_to_multiple(x: torch.Tensor, m: int) -> tuple[torch.Tensor, tuple[int, i
     if ph or pw:
         x = nn.functional.pad(x, (0, pw, 0, ph), mode="replicate")
     return x, (h, w)
+
+
+def unet_pass(y: torch.Tensor, enc: nn.ModuleList, down: nn.ModuleList, dec: nn.ModuleList, up: nn.Module
+              ) -> torch.Tensor:
+    """The encoder-decoder pass of S and V: enc[i] at each of len(down) + 1 levels with down[i]
+    between, then back up through dec[i] with the skip of level i."""
+    skips = []
+    for i in range(len(enc)):
+        y = enc[i](y)
+        if i < len(down):
+            skips.append(y)
+            y = down[i](y)
+    for i in reversed(range(len(dec))):
+        y = dec[i](torch.cat([up(y), skips[i]], 1))
+    return y

@@ -15,7 +15,7 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import nn
 
-from .blocks import ResBlock, pad_to_multiple
+from .blocks import ResBlock, pad_to_multiple, unet_pass
 
 
 @dataclass
@@ -41,17 +41,8 @@ class SilhouetteNet(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """x [B, 6, H, W] -> object logits [B, 1, H, W]."""
-        n = self.config.levels
-        x, (h, w) = pad_to_multiple(x, 2 ** n)
-        skips = []
-        y = self.inp(x)
-        for i in range(n + 1):
-            y = self.enc[i](y)
-            if i < n:
-                skips.append(y)
-                y = self.down[i](y)
-        for i in reversed(range(n)):
-            y = self.dec[i](torch.cat([self.up(y), skips[i]], 1))
+        x, (h, w) = pad_to_multiple(x, 2 ** self.config.levels)
+        y = unet_pass(self.inp(x), self.enc, self.down, self.dec, self.up)
         return self.out(y)[..., :h, :w]
 
     def config_dict(self) -> dict:

@@ -14,9 +14,10 @@ from ..io import atomic_path, atomic_write_json
 from .hf_unet import HFUNet, HFUNetConfig
 from .ll_denoiser import LLDenoiser, LLDenoiserConfig
 from .silhouette_net import SilhouetteNet, SilhouetteNetConfig
+from .volume_net import VolumeNet, VolumeNetConfig
 
 CLASSES = {"LLDenoiser": (LLDenoiser, LLDenoiserConfig), "HFUNet": (HFUNet, HFUNetConfig),
-           "SilhouetteNet": (SilhouetteNet, SilhouetteNetConfig)}
+           "SilhouetteNet": (SilhouetteNet, SilhouetteNetConfig), "VolumeNet": (VolumeNet, VolumeNetConfig)}
 
 
 def save_model(folder: Path, model: torch.nn.Module, extra: dict | None = None) -> None:

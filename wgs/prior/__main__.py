@@ -3,6 +3,7 @@
     python -m wgs.prior corpus --mirror /work/.mirror      # extract snapshots, render objects
     python -m wgs.prior pairs --budget-min 60              # coarse runs -> (render, ref) pairs
     python -m wgs.prior train                              # D and U -> wgs/prior/weights/
+    python -m wgs.prior volume-pairs && python -m wgs.prior train-volume --exclude '*cow*'   # V
 
 Everything is resumable and lives in the cache folder (default ~/.cache/wgs-prior, or $WGS_PRIOR_CACHE).
 """
@@ -14,7 +15,7 @@ from pathlib import Path
 
 import click
 
-from . import WEIGHTS_S
+from . import WEIGHTS_S, WEIGHTS_V
 
 DEFAULT_CACHE = Path(os.environ.get("WGS_PRIOR_CACHE", Path.home() / ".cache" / "wgs-prior"))
 
@@ -205,6 +206,49 @@ def shape_curve_cmd(cache: Path, fractions: str, steps: int, device: str, out: P
                        cfg, _device(device), log=click.echo)
     if out is not None:
         out.write_text(json.dumps(rows, indent=1))
+
+
+@main.command("volume-pairs")
+@click.option("--subsets", default=16, show_default=True, help="view subsets per object")
+@click.option("--resolution", default=32, show_default=True, help="cells per side of V's cube")
+@click.option("--limit", type=int, default=None, help="the first this many corpus objects")
+@click.option("--workers", default=1, show_default=True, help="one-thread processes")
+@click.pass_obj
+def volume_pairs(cache: Path, subsets: int, resolution: int, limit: int | None, workers: int) -> None:
+    """(few-view hull, many-view hull) cubes of the rendered corpus objects, for V."""
+    from .volume_pairs import build_volume_pairs
+
+    made = build_volume_pairs(cache, subsets, resolution, limit, workers)
+    click.echo(f"volume pairs: {made} new object files in {cache / 'volume_pairs'}")
+
+
+@main.command("train-volume")
+@click.option("--out", type=click.Path(path_type=Path), default=None, help="default: the package's weights/V")
+@click.option("--steps", type=int, default=None, help="training steps")
+@click.option("--exclude", multiple=True, help="object name pattern left out (a shape a benchmark measures)")
+@click.option("--device", default="auto", show_default=True, help="auto | cpu | cuda")
+@click.pass_obj
+def train_volume_cmd(cache: Path, out: Path | None, steps: int | None, exclude: tuple[str, ...], device: str) -> None:
+    """Train the volume model V on the volume pairs (held-out objects measure it)."""
+    import json
+
+    from ..models.storage import save_model
+    from .train_volume import VolumeTrainConfig, load_volume_pairs, train_volume
+
+    cfg = VolumeTrainConfig()
+    if steps is not None:
+        cfg.steps = steps
+    data = load_volume_pairs(cache / "volume_pairs", exclude)
+    click.echo(f"V: {len(data['y'])} cubes from {len(data['names'])} objects, {int(data['holdout'].sum())} held out")
+    model, curve = train_volume(data, cfg, _device(device), log=click.echo)
+    out = out or WEIGHTS_V
+    save_model(out, model)
+    excluded = " ".join(f"--exclude '{p}'" for p in exclude)
+    (out / "provenance.json").write_text(json.dumps(
+        {"cubes": int((~data["holdout"]).sum()), "objects": data["names"], "excluded": list(exclude), "curve": curve,
+         "command": f"python -m wgs.prior --cache CACHE volume-pairs && python -m wgs.prior --cache CACHE "
+                    f"train-volume --steps {cfg.steps} {excluded}".strip()}, indent=1))
+    click.echo(f"V: {curve['seconds']} s -> {out}")
 
 
 if __name__ == "__main__":

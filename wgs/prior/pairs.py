@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import shutil
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -88,22 +89,32 @@ def build_pairs(cache: Path, coarse_overrides: dict, limit: int | None = None, b
         if budget_s is not None and time.perf_counter() - t0 > budget_s:
             log(f"pairs: budget of {budget_s:.0f} s spent; rerun to continue")
             break
-        work = cache / "work" / meta["name"]
-        shutil.rmtree(work, ignore_errors=True)
-        try:
-            arrays = object_pairs(meta_path.parent, work, views, coarse_overrides)
-        except Exception as exc:  # one bad object must not stop a days-long build
-            log(f"pairs: skipped {meta['name']}: {type(exc).__name__}: {exc}")
+        make = partial(object_pairs, meta_path.parent, views=views, coarse_overrides=coarse_overrides)
+        arrays = save_object_pairs(out, cache / "work" / meta["name"], meta, make)
+        if arrays is None:
             continue
-        finally:
-            shutil.rmtree(work, ignore_errors=True)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = out.with_suffix(".tmp.npz")
-        np.savez_compressed(tmp, **arrays, holdout=np.bool_(meta.get("holdout", False)))
-        tmp.replace(out)
         made += 1
         log(f"pairs: {meta['name']} ({views} views) {float(arrays['seconds']):.0f} s")
     return made
+
+
+def save_object_pairs(out: Path, work: Path, meta: dict, make) -> dict | None:
+    """make(work) -> arrays, in the scratch folder `work` (removed after), saved to `out` atomically
+    with the object's holdout flag; None, with one line, when it fails (one bad object must not stop
+    a long build)."""
+    shutil.rmtree(work, ignore_errors=True)
+    try:
+        arrays = make(work)
+    except Exception as exc:
+        log(f"pairs: skipped {meta['name']}: {type(exc).__name__}: {exc}")
+        return None
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_suffix(".tmp.npz")
+    np.savez_compressed(tmp, **arrays, holdout=np.bool_(meta.get("holdout", False)))
+    tmp.replace(out)
+    return arrays
 
 
 def in_processes(fn, n: int, *args) -> list:

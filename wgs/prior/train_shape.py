@@ -22,21 +22,14 @@ from ..errors import InputError
 from ..models.silhouette_net import SilhouetteNet, SilhouetteNetConfig
 from ..shape.features import predict_batch, silhouette_inputs, to_work_size
 from ..shape.scores import silhouette_scores
-from ..training.loop import FitPlan, FitState, fit
+from ..training.loop import FitState, MaskTrainConfig, fit
 from .train import growing_subsets
 
 
 @dataclass
-class ShapeTrainConfig:
+class ShapeTrainConfig(MaskTrainConfig):
     net: SilhouetteNetConfig = field(default_factory=SilhouetteNetConfig)
     steps: int = 2500
-    batch: int = 8
-    lr: float = 2e-3
-    warmup: int = 100  # linear learning-rate warm-up steps, then cosine decay to 0
-    object_weight: float = 2.0  # a missed object pixel costs this many excess pixels
-    ema_decay: float = 0.995
-    eval_every: int = 250
-    seed: int = 0
 
 
 def load_shape_pairs(pairs_dir: Path, work_size: int) -> dict[str, torch.Tensor]:
@@ -116,7 +109,7 @@ def train_silhouette(data: dict[str, torch.Tensor], cfg: ShapeTrainConfig, devic
     train_idx = (~data["holdout"]).nonzero()[:, 0]
     if train_idx.numel() == 0:
         raise InputError("every pair is held out: nothing to train S on")
-    plan = FitPlan(cfg.steps, cfg.lr, cfg.eval_every, warmup=cfg.warmup, ema_decay=cfg.ema_decay)
+    plan = cfg.plan()
 
     def batch_loss(step: int) -> torch.Tensor:
         pick = train_idx[torch.randint(0, train_idx.numel(), (cfg.batch,), generator=gen)]

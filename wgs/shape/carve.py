@@ -1,10 +1,11 @@
-"""Carving the visual hull with predicted silhouettes at pseudo views, never against a real mask.
+"""Carving the visual hull with predictions, never against a real mask.
 
-A voxel goes when enough of the pseudo views that see it call its pixel background with high
-confidence (object probability under `empty_below` after growing the prediction by `dilate_px`).
-At most `max_carve` of the hull goes per call, the most certain first. Real masks are evidence
-the predictions cannot overrule: every pixel of a real mask that the hull covered stays covered,
-by restoring the carved voxels on its ray.
+Two kinds of prediction carve: silhouettes at pseudo views (S), where a voxel goes when enough of
+the views that see it call its pixel background with high confidence (object probability under
+`empty_below` after growing the prediction by `dilate_px`), and an object probability per voxel
+(V), where a voxel goes when it is under `volume_empty_below`. At most `max_carve` of the hull goes
+per call, the most certain first. Real masks are evidence the predictions cannot overrule: every
+pixel of a real mask that the hull covered stays covered, by restoring the carved voxels on its ray.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ class CarveParams:
     # a minority)
     min_fraction: float = 0.0
     max_carve: float = 0.5  # at most this fraction of the hull's voxels goes in one call
+    volume_empty_below: float = 0.3  # a voxel goes when the volume model V's object probability is under this
 
 
 def sure_background(object_prob: torch.Tensor, params: CarveParams) -> torch.Tensor:
@@ -54,21 +56,36 @@ def background_votes(grid: HullGrid, views: list[Camera], object_prob: list[torc
 
 def carve(grid: HullGrid, views: list[Camera], object_prob: list[torch.Tensor], real: list,
           params: CarveParams | None = None) -> tuple[HullGrid, dict[str, int]]:
-    """The hull with the voxels the predictions call background removed.
+    """The hull with the voxels the predicted silhouettes call background removed.
 
     views / object_prob: pseudo cameras and their predicted object probability [H, W] in [0, 1];
     real: the training frames (with masks) whose covered mask pixels must stay covered.
     Returns the carved grid and counts (voxels before, carved, restored for the real masks).
     """
     params = params or CarveParams()
-    flat = grid.occ.reshape(-1)
-    occupied = flat.nonzero()[:, 0]
     seen, empty = background_votes(grid, views, object_prob, params)
     ratio = empty.float() / seen.clamp_min(1).float()
-    drop = (empty >= params.min_views) & (ratio >= params.min_fraction)
+    return remove_voxels(grid, (empty >= params.min_views) & (ratio >= params.min_fraction), ratio, real, params)
+
+
+def carve_volume(grid: HullGrid, voxel_prob: torch.Tensor, real: list, params: CarveParams | None = None
+                 ) -> tuple[HullGrid, dict[str, int]]:
+    """The hull with the voxels whose object probability voxel_prob [M] (occupied voxels, occ.nonzero
+    order) is under `volume_empty_below` removed; real and the counts as in `carve`."""
+    params = params or CarveParams()
+    return remove_voxels(grid, voxel_prob < params.volume_empty_below, 1.0 - voxel_prob, real, params)
+
+
+def remove_voxels(grid: HullGrid, drop: torch.Tensor, certainty: torch.Tensor, real: list, params: CarveParams
+                  ) -> tuple[HullGrid, dict[str, int]]:
+    """Remove the occupied voxels marked in drop [M] (at most `max_carve` of them, the highest
+    certainty [M] first), then restore what the real masks need."""
+    flat = grid.occ.reshape(-1)
+    occupied = flat.nonzero()[:, 0]
     limit = int(params.max_carve * occupied.numel())
     if int(drop.sum()) > limit:  # the most certain first
-        order = torch.argsort(torch.where(drop, ratio, torch.full_like(ratio, -1.0)), descending=True, stable=True)
+        order = torch.argsort(torch.where(drop, certainty, torch.full_like(certainty, -1.0)), descending=True,
+                              stable=True)
         drop = torch.zeros_like(drop)
         drop[order[:limit]] = True
     new = flat.clone()

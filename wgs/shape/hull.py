@@ -116,6 +116,22 @@ def mask_votes(frames, points: torch.Tensor, near: float = 0.01) -> tuple[torch.
     return votes, col_sum / votes.clamp_min(1)[:, None].float()
 
 
+def hull_votes(frames, points: torch.Tensor, need: int, near: float = 0.01) -> torch.Tensor:
+    """In how many frames' masks each point [N, 3] falls: [N] int, exact for every point that reaches
+    `need`. A point that has missed more masks than `need` allows is not looked up again (its count
+    stays under need), so each view projects only what is still in the running."""
+    votes = torch.zeros(points.shape[0], dtype=torch.int32)
+    missed = torch.zeros(points.shape[0], dtype=torch.int32)
+    alive = torch.arange(points.shape[0])
+    for f in frames:
+        inside, idx = pixel_lookup(f, points[alive], near)
+        hit = inside & (f.mask.reshape(-1)[idx] > 0.5)
+        votes[alive] += hit.int()
+        missed[alive] += (~hit).int()
+        alive = alive[missed[alive] <= len(frames) - need]
+    return votes
+
+
 def default_tolerance(num_views: int) -> int:
     """Masks a hull voxel may fall outside of: one with 3 or more views (a bad mask then cannot cut
     the object, GaussianObject's rule), else none."""
@@ -141,8 +157,8 @@ def _hull_key(frames, resolution: int, extent: float, near: float, tolerate: int
 def visual_hull_grid(frames, resolution: int = 96, extent: float = 1.0, near: float = 0.01,
                      tolerate: int | None = None) -> tuple[HullGrid, torch.Tensor]:
     """The hull of the frames' masks over [-extent, extent]³: a 32³ pass finds its bounding box, a
-    second carves that box at `resolution`. Returns the grid and the voxels' mean colours [R³, 3]
-    (copies: callers may change them); raises InputError when it is empty."""
+    second carves that box at `resolution`. Returns the grid and the occupied voxels' mean colours
+    [R³, 3] (0 elsewhere; copies: callers may change them); raises InputError when it is empty."""
     tolerate = default_tolerance(len(frames)) if tolerate is None else tolerate
     key = _hull_key(frames, resolution, extent, near, tolerate)
     if key not in _hulls:
@@ -197,10 +213,13 @@ def kept_box(votes_at, need: int, resolution: int, extent: float = 1.0):
 
 def _build_hull(frames, resolution: int, extent: float, near: float, tolerate: int) -> tuple[HullGrid, torch.Tensor]:
     need = len(frames) - tolerate
-    lo, hi, (votes, colours) = kept_box(lambda pts: mask_votes(frames, pts, near), need, resolution, extent)
+    lo, hi, (votes,) = kept_box(lambda pts: (hull_votes(frames, pts, need, near),), need, resolution, extent)
     occ = (votes >= need).reshape(resolution, resolution, resolution)
     if not occ.any():
         raise InputError(EMPTY_HULL)
+    colours = torch.zeros(resolution ** 3, 3)  # only the occupied voxels' are ever used
+    kept = occ.reshape(-1)
+    colours[kept] = mask_votes(frames, grid_centres(lo, hi, resolution)[kept], near)[1]
     return HullGrid(lo, hi, occ), colours
 
 

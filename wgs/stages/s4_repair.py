@@ -2,8 +2,9 @@
 Haar-DWT, D repairs the LL subband, U repairs the HF subbands, inverse DWT. With an RGB-domain D
 (`wgs finetune --domain rgb`) D repairs the RGB render and U is not used. When the coarse stage
 trained an ensemble, every member's render is repaired and the repairs are averaged. Where the
-scene has masks, the silhouette model S predicts the object's outline at each pseudo view, and
-the visual hull is carved with those outlines (`shape.carve`): the fine stage starts from it."""
+scene has masks, the volume model V carves the visual hull from its whole shape, the silhouette
+model S predicts the object's outline at each pseudo view, and the hull is carved again with those
+outlines (`shape.carve`): the fine stage starts from it."""
 
 from __future__ import annotations
 
@@ -23,13 +24,14 @@ from ..io.exr import write_subbands
 from ..io.images import write_png
 from ..models.repair import load_repairer
 from ..models.storage import load_model
-from ..prior import WEIGHTS_S
+from ..prior import WEIGHTS_S, WEIGHTS_V
 from ..progress import log
 from ..scene.dataset import load_prepared
 from ..scene.orbit import novel_views, sphere_views
-from ..shape.carve import carve, sure_background
+from ..shape.carve import carve, carve_volume, sure_background
 from ..shape.features import hull_channels, predict_object, silhouette_inputs
-from ..shape.hull import HullGrid, save_grid, visual_hull_grid
+from ..shape.hull import HullGrid, save_grid, silhouette, visual_hull_grid
+from ..shape.volume import occupied_probability
 from ..workspace import StageRun, Workspace
 from . import StageEnv
 from .shared import background_for, coarse_members, ensemble_repair
@@ -41,57 +43,73 @@ def contact_sheet(rows: list[tuple[torch.Tensor, torch.Tensor]]) -> np.ndarray:
 
 
 @dataclass
-class SilhouettePredictor:
-    """S with the strict visual hull of the training masks: the object probability at any camera."""
+class ShapeModels:
+    """The strict visual hull of the training masks with the models that carve it (either may be None):
+    S, the object probability at a camera, and V, the probability per voxel."""
 
-    model: torch.nn.Module
     grid: HullGrid
-    device: torch.device
+    silhouette_model: torch.nn.Module | None
+    volume_model: torch.nn.Module | None
 
     def predict(self, camera, render: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
-        """[H, W] object probability from G_c's render [H, W, 3] and opacity [H, W, 1] at `camera`."""
-        return predict_object(self.model, silhouette_inputs(render, alpha[..., 0],
-                                                            *hull_channels(self.grid, camera)))
+        """S's [H, W] object probability from G_c's render [H, W, 3] and opacity [H, W, 1] at `camera`."""
+        return predict_object(self.silhouette_model, silhouette_inputs(render, alpha[..., 0],
+                                                                      *hull_channels(self.grid, camera)))
 
 
-def silhouette_folder(cfg: RepairConfig) -> Path | None:
-    """Where S comes from when carving is on: the shipped S (None when the package has none) or a folder."""
+def model_folder(setting: str, builtin: Path) -> Path | None:
+    """A carving model's folder: the shipped one (None when the package has none) or the given one."""
+    if setting != "builtin":
+        return Path(setting)
+    return builtin if (builtin / "model.safetensors").is_file() else None
+
+
+def carving_folders(cfg: RepairConfig) -> dict[str, Path | None]:
+    """Where S and V come from when carving is on."""
     if not cfg.carve:
-        return None
-    if cfg.silhouette_model != "builtin":
-        return Path(cfg.silhouette_model)
-    return WEIGHTS_S if (WEIGHTS_S / "model.safetensors").is_file() else None
+        return {"S": None, "V": None}
+    return {"S": model_folder(cfg.silhouette_model, WEIGHTS_S), "V": model_folder(cfg.volume_model, WEIGHTS_V)}
 
 
-def silhouette_fingerprint(cfg: RepairConfig) -> str | None:
-    """S's weights' hash: a new S makes the repair stage stale."""
-    folder = silhouette_folder(cfg)
-    weights = folder / "model.safetensors" if folder is not None else None
-    return hashlib.sha256(weights.read_bytes()).hexdigest()[:16] if weights is not None and weights.is_file() else None
+def carving_fingerprint(cfg: RepairConfig) -> dict[str, str | None]:
+    """S's and V's weights' hashes: a new model makes the repair stage stale."""
+    out = {}
+    for name, folder in carving_folders(cfg).items():
+        weights = folder / "model.safetensors" if folder is not None else None
+        out[name] = (hashlib.sha256(weights.read_bytes()).hexdigest()[:16]
+                     if weights is not None and weights.is_file() else None)
+    return out
 
 
-def silhouette_predictor(scene, cfg: RepairConfig, device: torch.device) -> SilhouettePredictor | None:
-    """S and the hull it carves, or None (with one line) where the scene does not need or allow carving."""
+def shape_models(scene, cfg: RepairConfig, device: torch.device) -> ShapeModels | None:
+    """The hull and the models that carve it, or None (with one line) where the scene does not need
+    or allow carving."""
     if not cfg.carve:
         return None
     if not scene.has_masks:
         log("repair: no masks -> no visual hull, no carving")
         return None
-    folder = silhouette_folder(cfg)
-    if folder is None:
-        log("repair: no shipped silhouette model S -> no carving")
+    folders = carving_folders(cfg)
+    if all(f is None for f in folders.values()):
+        log("repair: no shipped silhouette or volume model -> no carving")
         return None
     try:
         grid, _ = visual_hull_grid(scene.train, cfg.hull_resolution, tolerate=0)
     except InputError:  # the training starts from the hull that tolerates one mask; carving needs them all
         log("repair: the training masks share no region (every mask agreeing) -> no carving")
         return None
-    model, _ = load_model(folder, device)
-    return SilhouettePredictor(model, grid, device)
+    models = {k: load_model(f, device)[0] if f is not None else None for k, f in folders.items()}
+    return ShapeModels(grid, models["S"], models["V"])
+
+
+def grown_silhouette(grid: HullGrid, camera, px: int) -> torch.Tensor:
+    """[H, W] bool: the grid's silhouette at `camera`, grown by px pixels."""
+    cover = silhouette(grid, camera)[0].float()
+    return torch.nn.functional.max_pool2d(cover[None, None], 2 * px + 1, 1, px)[0, 0] > 0.5
 
 
 def run_repair(ws: Workspace, cfg: RepairConfig, env: StageEnv, force: bool = False) -> bool:
-    return ws.run_stage("repair", cfg, {"seed": env.seed, "silhouette_model": silhouette_fingerprint(cfg)}, force,
+    return ws.run_stage("repair", cfg, {"seed": env.seed, "carving_models": carving_fingerprint(cfg)}, force,
                         lambda run: repair_views(run, ws, cfg, env.device, env.seed))
 
 
@@ -108,7 +126,14 @@ def repair_views(run: StageRun, ws: Workspace, cfg: RepairConfig, device: torch.
         per_pair = max(1, round(cfg.views_per_train * len(scene.train) / n_pairs))
         views = novel_views(scene.train, per_pair, cfg.arc_min, cfg.arc_max, seed)
     bg = background_for(scene)
-    shape = silhouette_predictor(scene, cfg, device)
+    shape = shape_models(scene, cfg, device)
+    hull = shape.grid if shape is not None else None
+    if shape is not None and shape.volume_model is not None:
+        hull, counts = carve_volume(hull, occupied_probability(shape.volume_model, scene.train, hull), scene.train, cfg)
+        run.record["volume_carving"] = counts
+        log(f"repair: V carved {counts['carved'] - counts['restored']} of the hull's {counts['voxels']} voxels "
+            f"({counts['restored']} kept for the real masks)")
+    use_s = shape is not None and shape.silhouette_model is not None
     listing, rows, probs = [], [], []
     d_max = max(d for _, d in views)
     for frame, dist in views:
@@ -116,10 +141,12 @@ def repair_views(run: StageRun, ws: Workspace, cfg: RepairConfig, device: torch.
         render, fixed, bands_in, bands_out = ensemble_repair(members, frame, bg, repairer, device, first_render=first)
         stem = frame.name.rsplit(".", 1)[0]
         extra = {}
-        if shape is not None:  # where the object may be: all but what S is sure is background
-            probs.append(shape.predict(frame, first, alpha))
-            may_be = (~sure_background(probs[-1], cfg)).float()
-            write_png(run.output("silhouettes", frame.name), may_be[..., None].expand(-1, -1, 3).numpy())
+        if shape is not None:  # where the object may be: inside V's hull, but for what S is sure is background
+            may_be = grown_silhouette(hull, frame, cfg.dilate_px)
+            if use_s:
+                probs.append(shape.predict(frame, first, alpha))
+                may_be &= ~sure_background(probs[-1], cfg)
+            write_png(run.output("silhouettes", frame.name), may_be.float()[..., None].expand(-1, -1, 3).numpy())
             extra["silhouette"] = f"{OUTPUTS['repair']['silhouettes']}/{frame.name}"
         write_subbands(run.path("corrupted", f"{stem}.exr"), bands_in)
         write_subbands(run.path("repaired", f"{stem}.exr"), bands_out)
@@ -128,14 +155,15 @@ def repair_views(run: StageRun, ws: Workspace, cfg: RepairConfig, device: torch.
         rows.append((render, fixed))
         listing.append({"name": frame.name, **frame.to_json(), "distance": dist,
                         "weight": min(1.0, 2.0 * dist / d_max) if d_max > 0 else 1.0, **extra})
-    if shape is not None:  # S also at views over the whole sphere: the band leaves the poles uncarved
+    if use_s:  # S also at views over the whole sphere: the band leaves the poles uncarved
         around = [f for f, _ in sphere_views(scene.train, cfg.carve_views, 180.0, 180.0)]
         probs += [shape.predict(f, *render_frame(members[0], f, device, bg)) for f in around]
-        carved, counts = carve(shape.grid, [f for f, _ in views] + around, probs, scene.train, cfg)
-        save_grid(run.output("carved_hull"), carved)
+        hull, counts = carve(hull, [f for f, _ in views] + around, probs, scene.train, cfg)
         run.record["carving"] = counts
         log(f"repair: S carved {counts['carved'] - counts['restored']} of the hull's {counts['voxels']} voxels "
             f"({counts['restored']} kept for the real masks)")
+    if shape is not None:
+        save_grid(run.output("carved_hull"), hull)
     write_png(run.output("contact_sheet"), contact_sheet(rows))
     atomic_write_json(run.output("views"), {"domain": domain, "used_u": U is not None, "views": listing})
     seconds = time.perf_counter() - t0

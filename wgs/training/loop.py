@@ -1,4 +1,4 @@
-"""The one training loop of the networks wgs trains (D, U and S), per object and for the prior.
+"""The one training loop of the networks wgs trains (D, U, S and V), per object and for the prior.
 
 A caller gives the loss of one batch (`batch_loss(step)`: it samples the batch from its own
 generator), and optionally an evaluation on held-out data. The loop does the rest the same way for
@@ -40,6 +40,24 @@ class FitPlan:
         if self.warmup is None:
             return self.lr
         return self.lr * min(1.0, step / max(self.warmup, 1)) * 0.5 * (1 + math.cos(math.pi * step / self.steps))
+
+
+@dataclass
+class MaskTrainConfig:
+    """The schedule of a network trained on corpus pairs against a true mask (S, V); each trainer's
+    config derives from it and sets its own defaults."""
+
+    steps: int = 2000
+    batch: int = 8
+    lr: float = 2e-3
+    warmup: int = 100  # linear learning-rate warm-up steps, then cosine decay to 0
+    object_weight: float = 2.0  # a missed object pixel or cell costs this many excess ones
+    ema_decay: float = 0.995
+    eval_every: int = 250
+    seed: int = 0
+
+    def plan(self) -> FitPlan:
+        return FitPlan(self.steps, self.lr, self.eval_every, warmup=self.warmup, ema_decay=self.ema_decay)
 
 
 @dataclass
