@@ -276,3 +276,22 @@ def test_volume_augment_turns_inputs_and_target_alike():
     for _ in range(6):
         xa, ya = augment(x, x[:, 0].clone(), gen)
         assert torch.equal(xa[:, 0], ya) and sorted(xa.flatten().tolist()) == sorted(x.flatten().tolist())
+
+
+def test_a_volume_model_that_hurts_the_leave_one_out_silhouettes_is_left_out(monkeypatch):
+    import wgs.shape.carve as carving
+
+    views = frames_of(mug, [camera(a, e) for a, e in ((0, 0), (100, 10), (210, -10), (300, 40))])
+    grid, _ = visual_hull_grid(views, resolution=48, extent=0.7, tolerate=0)
+    for cuts_half in (True, False):  # a V that calls the half y > 0 background / one that keeps everything
+        def prob(model, frames, g, cuts_half=cuts_half):
+            pts = g.centres()[g.occ.reshape(-1)]
+            return torch.where((pts[:, 1] > 0) & cuts_half, 0.0, 1.0)
+
+        monkeypatch.setattr(carving, "occupied_probability", prob)
+        params = CarveParams(max_carve=1.0, volume_check_margin=0.0)
+        carved, record = carving.carve_with_volume(None, views, grid, params, resolution=48)
+        assert record["used"] is not cuts_half, record
+        assert torch.equal(carved.occ, grid.occ)  # vetoed, or nothing to carve
+        if cuts_half:  # the real masks' rule keeps most of it: the held-out views see what is left
+            assert record["leave_one_out_iou_carved"] < record["leave_one_out_iou"]

@@ -3,8 +3,9 @@
 Two kinds of prediction carve: silhouettes at pseudo views (S), where a voxel goes when enough of
 the views that see it call its pixel background with high confidence (object probability under
 `empty_below` after growing the prediction by `dilate_px`), and an object probability per voxel
-(V), where a voxel goes when it is under `volume_empty_below`. At most `max_carve` of the hull goes
-per call, the most certain first. Real masks are evidence the predictions cannot overrule: every
+(V), where a voxel goes when it is under `volume_empty_below`; V carves only an object whose
+leave-one-out silhouettes it does not make worse (`carve_with_volume`). At most `max_carve` of the
+hull goes per call, the most certain first. Real masks are evidence the predictions cannot overrule: every
 pixel of a real mask that the hull covered stays covered, by restoring the carved voxels on its ray.
 """
 
@@ -16,6 +17,8 @@ import torch
 
 from ..scene.camera import Camera
 from .hull import HullGrid, box_rays, march, pixel_lookup, silhouette
+from .scores import leave_one_out, mean_scores
+from .volume import occupied_probability
 
 
 @dataclass
@@ -31,6 +34,9 @@ class CarveParams:
     min_fraction: float = 0.0
     max_carve: float = 0.5  # at most this fraction of the hull's voxels goes in one call
     volume_empty_below: float = 0.3  # a voxel goes when the volume model V's object probability is under this
+    # V is left out of an object whose leave-one-out IoU (each training mask against the hull of the
+    # others) falls by more than this when V carves those hulls
+    volume_check_margin: float = 0.005
 
 
 def sure_background(object_prob: torch.Tensor, params: CarveParams) -> torch.Tensor:
@@ -74,6 +80,25 @@ def carve_volume(grid: HullGrid, voxel_prob: torch.Tensor, real: list, params: C
     order) is under `volume_empty_below` removed; real and the counts as in `carve`."""
     params = params or CarveParams()
     return remove_voxels(grid, voxel_prob < params.volume_empty_below, 1.0 - voxel_prob, real, params)
+
+
+def carve_with_volume(model: torch.nn.Module, frames: list, grid: HullGrid, params: CarveParams, resolution: int
+                      ) -> tuple[HullGrid, dict]:
+    """V's carving of the hull (`carve_volume`), checked on the object's own evidence first: each
+    training mask against the hull of the other masks (at `resolution`), carved by V and not. Where V
+    makes that leave-one-out IoU worse by more than `volume_check_margin`, the hull stays as it is.
+    Returns the grid and a record: the counts, the two leave-one-out IoUs (3 or more frames), used."""
+    def by_volume(g: HullGrid, others: list) -> HullGrid:
+        return carve_volume(g, occupied_probability(model, others, g), others, params)[0]
+
+    check: dict = {}
+    if len(frames) >= 3:
+        check = {"leave_one_out_iou": mean_scores(leave_one_out(frames, resolution))["iou"],
+                 "leave_one_out_iou_carved": mean_scores(leave_one_out(frames, resolution, carve=by_volume))["iou"]}
+        if check["leave_one_out_iou_carved"] < check["leave_one_out_iou"] - params.volume_check_margin:
+            return grid, {**check, "used": False}
+    carved, counts = carve_volume(grid, occupied_probability(model, frames, grid), frames, params)
+    return carved, {**counts, **check, "used": True}
 
 
 def remove_voxels(grid: HullGrid, drop: torch.Tensor, certainty: torch.Tensor, real: list, params: CarveParams

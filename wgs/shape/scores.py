@@ -4,10 +4,11 @@ the hull's test-view silhouettes that needs no test views."""
 from __future__ import annotations
 
 import statistics
+from collections.abc import Callable
 
 import torch
 
-from .hull import silhouette, visual_hull_grid
+from .hull import HullGrid, silhouette, visual_hull_grid
 
 SILHOUETTE_DOC = ("silhouette: rendered opacity > 0.5 against the true mask > 0.5; iou = |P & T| / |P | T|, "
                   "excess = |P - T| / |T| (area the model has too much), missed = |T - P| / |T|")
@@ -33,15 +34,18 @@ def mean_scores(per_view: dict[str, dict[str, float]]) -> dict[str, float] | Non
     return {k: statistics.fmean(s[k] for s in per_view.values()) for k in keys}
 
 
-def leave_one_out(frames, resolution: int = 96, extent: float = 1.0, tolerate: int = 0
-                  ) -> dict[str, dict[str, float]]:
+def leave_one_out(frames, resolution: int = 96, extent: float = 1.0, tolerate: int = 0,
+                  carve: Callable[[HullGrid, list], HullGrid] | None = None) -> dict[str, dict[str, float]]:
     """For each training frame (with a mask): the hull of the other frames' masks seen from its
     camera against its own mask. How fat a hull of N - 1 views is at a view it never saw estimates
-    how fat the N-view hull is at test views, without test views. {frame name: scores}."""
+    how fat the N-view hull is at test views, without test views. carve(hull, other frames) -> the
+    hull a carving leaves, scored instead: the object's own check of that carving. {frame name: scores}."""
     out = {}
     for i, f in enumerate(frames):
         others = frames[:i] + frames[i + 1:]
         grid, _ = visual_hull_grid(others, resolution, extent, tolerate=tolerate)
+        if carve is not None:
+            grid = carve(grid, others)
         cover, _ = silhouette(grid, f)
         out[f.name] = silhouette_scores(cover, f.mask > 0.5)
     return out

@@ -28,10 +28,9 @@ from ..prior import WEIGHTS_S, WEIGHTS_V
 from ..progress import log
 from ..scene.dataset import load_prepared
 from ..scene.orbit import novel_views, sphere_views
-from ..shape.carve import carve, carve_volume, sure_background
+from ..shape.carve import carve, carve_with_volume, sure_background
 from ..shape.features import hull_channels, predict_object, silhouette_inputs
 from ..shape.hull import HullGrid, save_grid, silhouette, visual_hull_grid
-from ..shape.volume import occupied_probability
 from ..workspace import StageRun, Workspace
 from . import StageEnv
 from .shared import background_for, coarse_members, ensemble_repair
@@ -129,10 +128,14 @@ def repair_views(run: StageRun, ws: Workspace, cfg: RepairConfig, device: torch.
     shape = shape_models(scene, cfg, device)
     hull = shape.grid if shape is not None else None
     if shape is not None and shape.volume_model is not None:
-        hull, counts = carve_volume(hull, occupied_probability(shape.volume_model, scene.train, hull), scene.train, cfg)
-        run.record["volume_carving"] = counts
-        log(f"repair: V carved {counts['carved'] - counts['restored']} of the hull's {counts['voxels']} voxels "
-            f"({counts['restored']} kept for the real masks)")
+        hull, record = carve_with_volume(shape.volume_model, scene.train, hull, cfg, cfg.hull_resolution)
+        run.record["volume_carving"] = record
+        if record["used"]:
+            log(f"repair: V carved {record['carved'] - record['restored']} of the hull's {record['voxels']} voxels "
+                f"({record['restored']} kept for the real masks)")
+        else:
+            log(f"repair: V would lower this object's leave-one-out silhouette IoU ({record['leave_one_out_iou']:.3f}"
+                f" -> {record['leave_one_out_iou_carved']:.3f}) -> V does not carve")
     use_s = shape is not None and shape.silhouette_model is not None
     listing, rows, probs = [], [], []
     d_max = max(d for _, d in views)
