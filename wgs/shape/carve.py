@@ -33,7 +33,7 @@ class CarveParams:
     # a minority)
     min_fraction: float = 0.0
     max_carve: float = 0.5  # at most this fraction of the hull's voxels goes in one call
-    volume_empty_below: float = 0.3  # a voxel goes when the volume model V's object probability is under this
+    volume_empty_below: float = 0.5  # a voxel goes when the volume model V's object probability is under this
     # V is left out of an object whose leave-one-out IoU (each training mask against the hull of the
     # others) falls by more than this when V carves those hulls
     volume_check_margin: float = 0.005
