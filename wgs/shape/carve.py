@@ -39,11 +39,14 @@ class CarveParams:
     volume_check_margin: float = 0.005
 
 
+def grow(image: torch.Tensor, px: int) -> torch.Tensor:
+    """[H, W] float: each pixel the largest value within px pixels (a square's reach)."""
+    return torch.nn.functional.max_pool2d(image[None, None].float(), 2 * px + 1, 1, px)[0, 0]
+
+
 def sure_background(object_prob: torch.Tensor, params: CarveParams) -> torch.Tensor:
     """[H, W] bool: where the object probability [H, W], grown by `dilate_px`, stays under `empty_below`."""
-    k = 2 * params.dilate_px + 1
-    grown = torch.nn.functional.max_pool2d(object_prob[None, None].float(), k, 1, params.dilate_px)[0, 0]
-    return grown < params.empty_below
+    return grow(object_prob, params.dilate_px) < params.empty_below
 
 
 def background_votes(grid: HullGrid, views: list[Camera], object_prob: list[torch.Tensor], params: CarveParams

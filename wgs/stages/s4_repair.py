@@ -28,7 +28,7 @@ from ..prior import WEIGHTS_S, WEIGHTS_V
 from ..progress import log
 from ..scene.dataset import load_prepared
 from ..scene.orbit import novel_views, sphere_views
-from ..shape.carve import carve, carve_with_volume, sure_background
+from ..shape.carve import carve, carve_with_volume, grow, sure_background
 from ..shape.features import hull_channels, predict_object, silhouette_inputs
 from ..shape.hull import HullGrid, save_grid, silhouette, visual_hull_grid
 from ..workspace import StageRun, Workspace
@@ -103,8 +103,7 @@ def shape_models(scene, cfg: RepairConfig, device: torch.device) -> ShapeModels 
 
 def grown_silhouette(grid: HullGrid, camera, px: int) -> torch.Tensor:
     """[H, W] bool: the grid's silhouette at `camera`, grown by px pixels."""
-    cover = silhouette(grid, camera)[0].float()
-    return torch.nn.functional.max_pool2d(cover[None, None], 2 * px + 1, 1, px)[0, 0] > 0.5
+    return grow(silhouette(grid, camera)[0], px) > 0.5
 
 
 def run_repair(ws: Workspace, cfg: RepairConfig, env: StageEnv, force: bool = False) -> bool:
