@@ -35,6 +35,9 @@ os.environ.pop("WGS_LPIPS_WEIGHTS", None)
 
 # The smallest config that runs every stage (seconds per `wgs all` on a 48-64 px scene).
 TINY = """
+[prepare]
+mirror = "auto"
+mirror_directions = 60
 [coarse]
 iterations = 30
 refine_start = 10

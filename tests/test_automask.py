@@ -21,7 +21,8 @@ from wgs.workspace import Workspace
 
 
 def prepare(scene, ws, *extra):
-    res = CliRunner().invoke(cli, ["-q", "-w", str(ws), "prepare", str(scene), *map(str, extra)],
+    """`wgs prepare` without mirror views: these tests count and compare the photos' own masks."""
+    res = CliRunner().invoke(cli, ["-q", "-w", str(ws), "prepare", str(scene), "--mirror", "none", *map(str, extra)],
                              catch_exceptions=False)
     assert res.exit_code == 0, res.output
     return Workspace(ws)

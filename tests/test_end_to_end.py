@@ -351,6 +351,31 @@ def test_a_carving_model_carves_the_hull_and_fine_starts_there(tiny, tmp_path, k
     assert math.isfinite(json.loads((ws.stage_dir("eval") / "results.json").read_text())["psnr"])
 
 
+def test_the_mirror_check_and_the_carved_hull_are_reported(tiny):
+    """prepare looked for the object's mirror plane and kept its check either way (the photos'
+    mirror images are training views only where it passed); eval scores the carved hull at the test
+    views beside the strict one and names the mirror's check."""
+    from wgs.config import PrepareConfig
+    from wgs.scene.dataset import load_prepared
+
+    _, _, ws, _ = tiny
+    summary = ws.manifest("scene")["summary"]
+    mirror = summary["mirror"]
+    assert len(mirror["plane"]["normal"]) == 3 and 0 < mirror["leave_one_out_iou"] <= 1
+    gain = mirror["leave_one_out_iou_mirrored"] - mirror["leave_one_out_iou"]
+    cfg = PrepareConfig()
+    assert mirror["used"] == (gain >= cfg.mirror_min_gain and mirror["missed"] <= cfg.mirror_max_missed)
+    train = load_prepared(ws.stage_dir("scene")).train
+    assert len(train) == (2 if mirror["used"] else 1) * summary["num_train"]
+    assert sum(f.name.endswith(".mirror.png") for f in train) == len(train) - summary["num_train"]
+    shape = json.loads(ws.output("eval", "results").read_text())["shape"]
+    assert shape["mirror"] == mirror and 0 < shape["carved_hull_test"]["iou"] <= 1
+    report = ws.output("eval", "report").read_text()
+    assert "carved hull" in report and "mirror images" in report
+    per_view = json.loads((ws.stage_dir("eval") / "per_view_shape.json").read_text())
+    assert set(per_view["carved_hull_test"]) == set(per_view["hull_test"]) and per_view["hull_test"]
+
+
 def test_masks_that_share_no_region_train_without_carving_or_hull_scores(tiny, tmp_path):
     """One training mask off the object (the hull that tolerates one bad mask still exists, the one
     every mask agrees on does not): the pipeline runs through, without carving and without the

@@ -16,7 +16,9 @@ from wgs.workspace import Workspace
 
 
 def prepare(scene, ws, *args):
-    res = CliRunner().invoke(cli, ["-q", "-w", str(ws), "prepare", str(scene), *args], catch_exceptions=False)
+    """`wgs prepare` without mirror views: these tests compare the photos' own cameras."""
+    res = CliRunner().invoke(cli, ["-q", "-w", str(ws), "prepare", str(scene), "--mirror", "none", *args],
+                             catch_exceptions=False)
     assert res.exit_code == 0, res.output
     return Workspace(ws)
 

@@ -14,6 +14,7 @@ from .progress import log
 # `wgs all`'s own options: config field -> the stage tables it sets
 ALL_FIELDS: dict[str, tuple[str, ...]] = {
     "views": ("prepare",), "downscale": ("prepare",), "matcher": ("prepare",), "masks": ("prepare",),
+    "mirror": ("prepare",),
     "ensemble": ("coarse",),
     "strategy": ("mask_data",), "domain": ("finetune",), "use_u": ("finetune",), "prior": ("finetune",),
     "carve": ("repair",), "lpips_weights": ("fine", "eval")}

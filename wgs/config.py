@@ -40,6 +40,15 @@ class PrepareConfig:
     # auto: when agreement cuts more than this share of the network's object area (mean over the
     # views), the views disagree on what the object is, and the scene goes on without masks
     mask_max_cut: float = 0.3
+    # "auto": where the object's leave-one-out silhouettes back a mirror plane (wgs.shape.symmetry),
+    # the training photos' mirror images join them as training views (for objects symmetric in shape
+    # and colour: the check sees masks only); "none": never
+    mirror: str = "none"
+    mirror_min_gain: float = 0.02  # the mirror must raise the mean leave-one-out silhouette IoU by this
+    # ... and the hull of the photos and their mirror images may miss at most this share of the
+    # photos' masks (mean over the photos): a plane the object only roughly follows cuts it
+    mirror_max_missed: float = 0.02
+    mirror_directions: int = 400  # plane normals tried, spread over a hemisphere
 
 
 @dataclass
@@ -261,7 +270,7 @@ REGISTRY: tuple[Stage, ...] = (
     Stage("repair", "4_repair", "repair", RepairConfig, ("scene", "coarse", "finetune"), "s4_repair:run_repair",
           {"views": "views.json",  # the pseudo views' cameras and weights (and S's silhouette files)
            "silhouettes": "silhouettes",  # per pseudo view, where the object may be (black: S is sure of background)
-           "carved_hull": "carved_hull.npz",  # the visual hull carved with S's silhouettes (shape.hull.save_grid)
+           "carved_hull": "carved_hull.npz",  # the visual hull carved by V and S (shape.hull.save_grid)
            "pseudo": "pseudo",  # the pseudo references, <stem>.exr (RGB, float) and <name> (PNG)
            "contact_sheet": "contact_sheet.png"}),
     # fine rounds run the repair again, so it reads finetune's models too
@@ -269,7 +278,7 @@ REGISTRY: tuple[Stage, ...] = (
           dict(_MODEL)),
     Stage("baseline", "baseline", "baseline", BaselineConfig, ("scene", "coarse", "fine"), "baseline:run_baseline",
           {"model": _MODEL["model"], "curve": _MODEL["curve"]}, method=False, on_request=True),
-    Stage("eval", "6_eval", "eval", EvalConfig, ("scene", "coarse", "fine", "baseline"), "s6_eval:run_eval",
+    Stage("eval", "6_eval", "eval", EvalConfig, ("scene", "coarse", "repair", "fine", "baseline"), "s6_eval:run_eval",
           {"results": "results.json", "report": "report.md", "report_html": "report.html"}, method=False),
 )
 STAGES: dict[str, type] = {s.table: s.config for s in REGISTRY}  # config table -> settings class
@@ -386,14 +395,15 @@ def as_dict(cfg: Any) -> dict[str, Any]:
 CHOICES: dict[str, tuple[str, ...]] = {"strategy": ("orm", "offline-rm", "loo"), "domain": ("wavelet", "rgb"),
                                        "poses": ("sphere", "arc"), "start": ("auto", "coarse", "hull"),
                                        "lpips_net": ("alex", "vgg"), "diffusion": ("embedded", "controlnet"),
-                                       "matcher": ("auto", "exhaustive", "sequential")}
+                                       "matcher": ("auto", "exhaustive", "sequential"), "mirror": ("auto", "none")}
 
 
 # the allowed range of a numeric field, inclusive (None: open), whichever stage's config holds it
 RANGES: dict[str, tuple[float, float | None]] = {"views": (2, None), "downscale": (1, None), "sh_degree": (0, 3),
                                                  "ensemble": (1, None), "symmetries": (1, 8),
                                                  "repair_gain_views": (0, None), "mask_agreement": (0.0, 1.0),
-                                                 "mask_max_cut": (0.0, 1.0)}
+                                                 "mask_max_cut": (0.0, 1.0), "mirror_directions": (1, None),
+                                                 "mirror_max_missed": (0.0, 1.0)}
 
 
 def check_choices(cfg: Any) -> None:

@@ -13,6 +13,7 @@ from ..io.images import read_image
 from .camera import Camera
 from .colmap import read_model
 from .convention import Normalisation
+from .mirror import MirrorPlane, mirror_frame
 
 
 @dataclass(kw_only=True)
@@ -70,8 +71,13 @@ def load_prepared(sdir: Path, load_test_images: bool = False) -> PreparedScene:
             out.append(Frame(c.K.float(), c.viewmat.float(), c.width, c.height, name=n))
         return load_frame_images(sdir, out) if with_images else out
 
-    return PreparedScene(info, Normalisation.from_json(info["normalisation"]),
-                         frames(info["train_names"], True), frames(info["test_names"], load_test_images))
+    train = frames(info["train_names"], True)
+    mirror = info.get("mirror") or {}
+    if mirror.get("used"):  # the photos' mirror images are training views too (shape.symmetry)
+        plane = MirrorPlane.from_json(mirror["plane"])
+        train += [mirror_frame(f, plane) for f in train]
+    return PreparedScene(info, Normalisation.from_json(info["normalisation"]), train,
+                         frames(info["test_names"], load_test_images))
 
 
 def composite(image: torch.Tensor, mask: torch.Tensor | None, background: torch.Tensor) -> torch.Tensor:

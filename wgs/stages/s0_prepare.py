@@ -9,10 +9,12 @@ from ..config import PrepareConfig
 from ..errors import InputError
 from ..io import atomic_write_bytes, atomic_write_json, read_json
 from ..progress import log
+from ..scene.dataset import load_prepared
 from ..scene.formats import detect_format
 from ..scene.prepare import load_scene_for_prepare, prepare, scene_inputs_digest
 from ..scene.sfm import find_photos, pose_photos
 from ..scene.types import RawScene
+from ..shape.symmetry import mirror_check
 from ..threads import thread_count
 from ..workspace import StageRun, Workspace
 from . import StageEnv
@@ -83,6 +85,27 @@ def mask_line(masks: dict, sheet: Path) -> str:
             "none": "masks: none (--masks none)"}[masks["source"]]
 
 
+def find_mirror_views(scene_dir: Path, cfg: PrepareConfig) -> dict | None:
+    """The mirror check on the prepared training views (`shape.symmetry.mirror_check`), in one line;
+    None where the masks share no region."""
+    frames = load_prepared(scene_dir).train
+    try:
+        record = mirror_check(frames, cfg.mirror_min_gain, cfg.mirror_max_missed, cfg.mirror_directions)
+    except InputError:
+        log("mirror: the training masks share no region -> no mirror views")
+        return None
+    ious = (f"leave-one-out silhouette IoU {record['leave_one_out_iou']:.3f} -> "
+            f"{record['leave_one_out_iou_mirrored']:.3f}")
+    if record["used"]:
+        log(f"mirror: the {len(frames)} training photos' mirror images join them as training views ({ious})")
+    elif record["missed"] > cfg.mirror_max_missed:
+        log(f"mirror: the best mirror plane ({ious}) would cut {100 * record['missed']:.1f} % of the photos' masks "
+            "-> no mirror views")
+    else:
+        log(f"mirror: no mirror plane raises the {ious} by {cfg.mirror_min_gain} -> no mirror views")
+    return record
+
+
 def import_scene(run: StageRun, ws: Workspace, scene_dir: Path, scene: RawScene, cfg: PrepareConfig, force: bool
                  ) -> str:
     held = ((ws.manifest("scene") or {}).get("summary") or {}).get("source")
@@ -94,9 +117,12 @@ def import_scene(run: StageRun, ws: Workspace, scene_dir: Path, scene: RawScene,
     log(f"prepare: {scene.format} scene, {len(scene.train)} training + {len(scene.test)} test views")
     info = prepare(scene, cfg, run.dir)
     log(mask_line(info["masks"], ws.output("scene", "masks_sheet")))
+    if cfg.mirror == "auto" and info["has_masks"]:
+        info["mirror"] = find_mirror_views(run.dir, cfg)
+        atomic_write_json(run.dir / "scene.json", info)
     run.record["summary"] = {
         "source": info["source"], "format": info["format"], "num_train": len(info["train_names"]),
         "num_test": len(info["test_names"]), "resolution": info["resolution"], "has_masks": info["has_masks"],
-        "masks": info["masks"],
+        "masks": info["masks"], "mirror": info.get("mirror"),
     }
     return f"prepare: wrote {ws.stage_dir('scene')}"

@@ -101,6 +101,22 @@ def shape_models(scene, cfg: RepairConfig, device: torch.device) -> ShapeModels 
     return ShapeModels(grid, models["S"], models["V"])
 
 
+def carve_hull(shape: ShapeModels, frames: list, cfg: RepairConfig, run: StageRun) -> HullGrid:
+    """The strict hull carved by V where the object's own leave-one-out silhouettes back it (the
+    record goes to the stage's manifest)."""
+    hull = shape.grid
+    if shape.volume_model is not None:
+        hull, record = carve_with_volume(shape.volume_model, frames, hull, cfg, cfg.hull_resolution)
+        run.record["volume_carving"] = record
+        if record["used"]:
+            log(f"repair: V carved {record['carved'] - record['restored']} of the hull's {record['voxels']} voxels "
+                f"({record['restored']} kept for the real masks)")
+        else:
+            log(f"repair: V would lower this object's leave-one-out silhouette IoU ({record['leave_one_out_iou']:.3f}"
+                f" -> {record['leave_one_out_iou_carved']:.3f}) -> V does not carve")
+    return hull
+
+
 def grown_silhouette(grid: HullGrid, camera, px: int) -> torch.Tensor:
     """[H, W] bool: the grid's silhouette at `camera`, grown by px pixels."""
     return grow(silhouette(grid, camera)[0], px) > 0.5
@@ -125,16 +141,7 @@ def repair_views(run: StageRun, ws: Workspace, cfg: RepairConfig, device: torch.
         views = novel_views(scene.train, per_pair, cfg.arc_min, cfg.arc_max, seed)
     bg = background_for(scene)
     shape = shape_models(scene, cfg, device)
-    hull = shape.grid if shape is not None else None
-    if shape is not None and shape.volume_model is not None:
-        hull, record = carve_with_volume(shape.volume_model, scene.train, hull, cfg, cfg.hull_resolution)
-        run.record["volume_carving"] = record
-        if record["used"]:
-            log(f"repair: V carved {record['carved'] - record['restored']} of the hull's {record['voxels']} voxels "
-                f"({record['restored']} kept for the real masks)")
-        else:
-            log(f"repair: V would lower this object's leave-one-out silhouette IoU ({record['leave_one_out_iou']:.3f}"
-                f" -> {record['leave_one_out_iou_carved']:.3f}) -> V does not carve")
+    hull = carve_hull(shape, scene.train, cfg, run) if shape is not None else None
     use_s = shape is not None and shape.silhouette_model is not None
     listing, rows, probs = [], [], []
     d_max = max(d for _, d in views)

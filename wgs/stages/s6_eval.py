@@ -25,7 +25,7 @@ from ..progress import fmt, log, progress_bar
 from ..report_html import outline_sheet
 from ..scene.dataset import Frame, composite, load_prepared
 from ..scene.orbit import orbit_frames
-from ..shape.hull import silhouette, visual_hull_grid
+from ..shape.hull import HullGrid, load_grid, silhouette, visual_hull_grid
 from ..shape.scores import SILHOUETTE_DOC, leave_one_out, mean_scores, silhouette_scores
 from ..workspace import StageRun, Workspace
 from . import StageEnv
@@ -123,11 +123,12 @@ def summarise(per: dict[str, dict[str, float]]) -> dict[str, float | None]:
     return out
 
 
-def shape_reference(scene, frames: list[Frame], resolution: int) -> dict[str, Any] | None:
+def shape_reference(scene, frames: list[Frame], resolution: int, carved: HullGrid | None = None
+                    ) -> dict[str, Any] | None:
     """How fat the visual hull is: the hull of all training masks (every mask agreeing) scored at
-    the test views that have masks, and the leave-one-out estimate that needs no test views (the
-    hull of the other training masks at each training camera). None without masks, or where the
-    training masks share no region."""
+    the test views that have masks, the same for the repair stage's carved hull where there is one,
+    and the leave-one-out estimate that needs no test views (the hull of the other training masks at
+    each training camera). None without masks, or where the training masks share no region."""
     if not scene.has_masks:
         return None
     try:
@@ -136,9 +137,13 @@ def shape_reference(scene, frames: list[Frame], resolution: int) -> dict[str, An
     except InputError:
         log("eval: the training masks share no region (every mask agreeing) -> no visual-hull scores")
         return None
-    test = {f.name: silhouette_scores(silhouette(grid, f)[0], f.mask > 0.5) for f in frames if f.mask is not None}
-    return {"hull_test": mean_scores(test), "leave_one_out": mean_scores(loo), "hull_resolution": resolution,
-            "hull_test_per_view": test, "leave_one_out_per_view": loo}
+    with_mask = [f for f in frames if f.mask is not None]
+    test = {f.name: silhouette_scores(silhouette(grid, f)[0], f.mask > 0.5) for f in with_mask}
+    carved_test = ({f.name: silhouette_scores(silhouette(carved, f)[0], f.mask > 0.5) for f in with_mask}
+                   if carved is not None else {})
+    return {"hull_test": mean_scores(test), "carved_hull_test": mean_scores(carved_test),
+            "leave_one_out": mean_scores(loo), "hull_resolution": resolution,
+            "hull_test_per_view": test, "carved_hull_test_per_view": carved_test, "leave_one_out_per_view": loo}
 
 
 def masks_note(scene) -> str | None:
@@ -159,12 +164,19 @@ def shape_line(coarse: dict, fine: dict, shape: dict) -> str:
     parts = []
     if shape["hull_test"] is not None:
         parts.append(f"visual hull {shape['hull_test']['iou']:.3f}")
+    if shape.get("carved_hull_test") is not None:
+        parts.append(f"carved hull {shape['carved_hull_test']['iou']:.3f}")
     if coarse.get("silhouette_iou") is not None:
         parts.append(f"coarse {coarse['silhouette_iou']:.3f} -> fine {fine['silhouette_iou']:.3f}")
     head = "silhouette IoU at the test views: " + ", ".join(parts) if parts else "no test masks"
-    loo = shape["leave_one_out"]
-    return head + ("" if loo is None else f"; leave-one-out estimate (hull of the other training masks at "
-                                          f"each training camera) {loo['iou']:.3f}")
+    loo, mirror = shape["leave_one_out"], shape.get("mirror")
+    if loo is not None:
+        head += f"; leave-one-out estimate (hull of the other training masks at each training camera) {loo['iou']:.3f}"
+    if mirror:
+        head += (f"; the photos' mirror images {'are' if mirror['used'] else 'are not'} training views "
+                 f"(leave-one-out IoU {mirror['leave_one_out_iou']:.3f} -> {mirror['leave_one_out_iou_mirrored']:.3f}"
+                 " with the mirror)")
+    return head
 
 
 def write_report(run: StageRun, times: list[dict[str, Any]], coarse: dict, fine: dict, eval_s: float,
@@ -342,10 +354,12 @@ def evaluate(run: StageRun, ws: Workspace, cfg: EvalConfig, device: torch.device
         per = evaluate_model(b_splats, frames, device, bg, lpips_fn, desc="eval baseline")
         results["baseline_3dgs"] = {**summarise(per), "num_gaussians": int(b_splats["means"].shape[0]),
                                     **{k: b[k] for k in ("budget_s", "train_seconds", "iterations")}}
-    shape = shape_reference(scene, frames, cfg.hull_resolution)
+    carved = ws.output("repair", "carved_hull")
+    shape = shape_reference(scene, frames, cfg.hull_resolution, load_grid(carved) if carved.is_file() else None)
     if shape is not None:
-        atomic_write_json(run.path("per_view_shape.json"), {k: shape.pop(f"{k}_per_view")
-                                                             for k in ("hull_test", "leave_one_out")})
+        per_view = ("hull_test", "carved_hull_test", "leave_one_out")
+        atomic_write_json(run.path("per_view_shape.json"), {k: shape.pop(f"{k}_per_view") for k in per_view})
+        shape["mirror"] = scene.info.get("mirror")
     res = {**results["fine"], "final_model": final, "coarse": results["coarse"],
            "baseline_3dgs": results.get("baseline_3dgs"),
            "repair_gain": gain, "shape": shape, "masks_note": masks_note(scene),
