@@ -62,7 +62,7 @@ def test_mirror_fast_path_matches_reference(duck_views):
     rays = RayVoxels(grid, left_out, stride=2)
     normals = torch.cat([TRUE_NORMAL[None], hemisphere_directions(30)])
     offsets = torch.linspace(-0.1, 0.1, 31)
-    fast = rays.mirrored_iou(grid, normals, offsets)
+    fast = rays.mirrored_iou(normals, offsets)
     reference = rays.iou(mirrored_occupancy(grid, normals, offsets))
     assert torch.allclose(fast, reference, atol=1e-6)
     # the reference IoU of the whole grid is the ray-marched silhouette's (at every other pixel)

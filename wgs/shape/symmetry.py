@@ -58,6 +58,7 @@ class RayVoxels:
     silhouette IoU of any subset of the grid's occupancy is one gather instead of a ray march."""
 
     def __init__(self, grid: HullGrid, camera, stride: int = 1):
+        self.grid = grid
         rows = torch.arange(0, camera.height, stride)
         cols = torch.arange(0, camera.width, stride)
         pixels = (rows[:, None] * camera.width + cols[None]).reshape(-1)
@@ -75,7 +76,6 @@ class RayVoxels:
         vox = torch.cat([torch.nn.functional.pad(v, (0, width - v.shape[1]), value=-1) for v in voxels])
         self.voxels = vox[:, : max(int((vox >= 0).sum(-1).max()) if vox.numel() else 1, 1)].contiguous()
         self.on_mask = torch.cat(on_mask)
-        self.centres = None  # the grid's voxel centres, kept for the fast path
 
     def iou(self, occupancy: torch.Tensor) -> torch.Tensor:
         """occupancy [B, R³] bool (subsets of the grid's) -> silhouette IoU with the mask [B]."""
@@ -84,16 +84,14 @@ class RayVoxels:
         inter = (covered & self.on_mask).sum(-1)
         return inter / (self.mask_total + covered.sum(-1) - inter).clamp_min(1)
 
-    def mirrored_iou(self, grid: HullGrid, normals: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
-        """`iou(mirrored_occupancy(grid, normals, offsets))` [B] on the CPU fast path (`grid` must be
-        the grid these rays were taken from)."""
+    def mirrored_iou(self, normals: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
+        """`iou(mirrored_occupancy(self.grid, normals, offsets))` [B] on the CPU fast path."""
         from .mirror_numba import mirror_ious
 
-        if self.centres is None:
-            self.centres = grid.centres().double().numpy()
+        g = self.grid
         return torch.from_numpy(mirror_ious(
-            grid.occ.reshape(-1).to(torch.uint8).numpy(), grid.resolution, grid.lo.double().numpy(),
-            grid.cell.double().numpy(), self.centres, normals.double().numpy(), offsets.double().numpy(),
+            g.occ.reshape(-1).to(torch.uint8).numpy(), g.resolution, g.lo.double().numpy(), g.cell.double().numpy(),
+            g.centres().double().numpy(), normals.double().numpy(), offsets.double().numpy(),
             self.voxels.numpy(), self.on_mask.numpy(), self.mask_total)).float()
 
 
@@ -107,19 +105,15 @@ def hemisphere_directions(n: int) -> torch.Tensor:
     return torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], -1).float()
 
 
-def leave_one_out_views(frames, resolution: int, stride: int) -> list[tuple[HullGrid, RayVoxels]]:
+def leave_one_out_views(frames, resolution: int, stride: int) -> list[RayVoxels]:
     """For each frame, the hull of the other frames' masks and its rays at that frame's camera."""
-    views = []
-    for i, f in enumerate(frames):
-        grid, _ = visual_hull_grid(frames[:i] + frames[i + 1:], resolution, tolerate=0)
-        views.append((grid, RayVoxels(grid, f, stride)))
-    return views
+    return [RayVoxels(visual_hull_grid(frames[:i] + frames[i + 1:], resolution, tolerate=0)[0], f, stride)
+            for i, f in enumerate(frames)]
 
 
-def mirrored_loo_iou(views: list[tuple[HullGrid, RayVoxels]], normals: torch.Tensor, offsets: torch.Tensor
-                     ) -> torch.Tensor:
+def mirrored_loo_iou(views: list[RayVoxels], normals: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
     """Mean leave-one-out IoU [B] of the hulls intersected with their reflections across B planes."""
-    return torch.stack([rays.mirrored_iou(grid, normals, offsets) for grid, rays in views]).mean(0)
+    return torch.stack([rays.mirrored_iou(normals, offsets) for rays in views]).mean(0)
 
 
 def tilted(normal: torch.Tensor, offset: float, tilt_deg: float, offset_step: float, reach: int
@@ -159,7 +153,7 @@ def find_mirror(frames, directions: int) -> tuple[MirrorPlane, float, float]:
         if float(scores.max()) > top:
             k = int(scores.argmax())
             normal, offset, top = normals[k], float(offsets[k]), float(scores[k])
-    before = float(torch.stack([rays.iou(grid.occ.reshape(1, -1))[0] for grid, rays in fine]).mean())
+    before = float(torch.stack([rays.iou(rays.grid.occ.reshape(1, -1))[0] for rays in fine]).mean())
     return MirrorPlane(normal, offset), before, top
 
 
