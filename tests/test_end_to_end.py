@@ -363,11 +363,17 @@ def test_the_mirror_check_and_the_carved_hull_are_reported(tiny):
     mirror = summary["mirror"]
     assert len(mirror["plane"]["normal"]) == 3 and 0 < mirror["leave_one_out_iou"] <= 1
     gain = mirror["leave_one_out_iou_mirrored"] - mirror["leave_one_out_iou"]
-    cfg = PrepareConfig()
+    cfg = PrepareConfig(**ws.manifest("scene")["config"])
     assert mirror["used"] == (gain >= cfg.mirror_min_gain and mirror["missed"] <= cfg.mirror_max_missed)
     train = load_prepared(ws.stage_dir("scene")).train
     assert len(train) == (2 if mirror["used"] else 1) * summary["num_train"]
     assert sum(f.name.endswith(".mirror.png") for f in train) == len(train) - summary["num_train"]
+    # the tests' config asks for outline mirror views: their masks train, their images make no pairs
+    assert mirror["used"], mirror
+    assert mirror["views"] == "outline" and all(f.shows_colour != f.name.endswith(".mirror.png") for f in train)
+    photos = {f.name for f in train if f.shows_colour}
+    index = json.loads(ws.output("mask_data", "index").read_text())
+    assert {p["view"] for p in index["pairs"]} <= photos and set(index["hf_views"]) == photos
     shape = json.loads(ws.output("eval", "results").read_text())["shape"]
     assert shape["mirror"] == mirror and 0 < shape["carved_hull_test"]["iou"] <= 1
     report = ws.output("eval", "report").read_text()

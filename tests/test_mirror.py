@@ -126,3 +126,34 @@ def test_no_mirror_where_its_views_would_cut_the_photos_masks(duck_views):
     views = frames_of(crooked, [camera(a, e) for a, e in ((20, 20), (105, 35), (200, 15), (290, 30))])
     record = mirror_check(views, min_gain=0.0, max_missed=0.02, directions=60)
     assert record["missed"] > 0.02 and not record["used"], record
+
+
+def test_an_outline_view_teaches_its_mask_and_not_its_image():
+    """A view with shows_colour=False (an "outline" mirror view) trains opacity toward its mask only:
+    another image changes nothing, another mask changes the model."""
+    from conftest import ring_w2c
+
+    from wgs.config import TrainConfig
+    from wgs.gaussians.splats import create_splats
+    from wgs.gaussians.trainer import train_gaussians
+    from wgs.scene.dataset import Frame
+
+    gen = torch.Generator().manual_seed(0)
+    K = torch.tensor([[20.0, 0, 8], [0, 20, 8], [0, 0, 1]])
+    w2c = [torch.tensor(m, dtype=torch.float32) for m in ring_w2c(radius=2.0)]
+    disc = ((torch.arange(16)[:, None] - 7.5) ** 2 + (torch.arange(16)[None] - 7.5) ** 2 < 30).float()
+    photo = Frame(K, w2c[0], 16, 16, name="a.png", image=torch.rand(16, 16, 3, generator=gen), mask=disc)
+    points, colours = torch.randn(60, 3, generator=gen) * 0.2, torch.rand(60, 3, generator=gen)
+    cfg = TrainConfig(iterations=20, refine_start=100, floater_every=0, log_every=1)
+
+    def trained(image, mask):
+        outline = Frame(K, w2c[1], 16, 16, name="b.mirror.png", image=image, mask=mask, shows_colour=False)
+        splats = create_splats(points, colours, torch.full((60,), 0.05), 0)
+        return train_gaussians(splats, [photo, outline], cfg, torch.device("cpu"), extent=1.0, seed=0).splats
+
+    base = trained(torch.rand(16, 16, 3, generator=gen), disc)
+    other_image = trained(torch.rand(16, 16, 3, generator=gen), disc)
+    other_mask = trained(torch.rand(16, 16, 3, generator=gen), disc.flip(0).roll(4, 1))
+    for k in base:
+        assert torch.allclose(base[k], other_image[k], atol=1e-6), k
+    assert max(float((base[k] - other_mask[k]).abs().max()) for k in base if base[k].numel()) > 1e-3

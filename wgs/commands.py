@@ -193,12 +193,13 @@ def register(cli, stage_common, workspace_option) -> None:
                   help="paper | all | comma-separated names (loo-rgb, offline-rgb, orm-rgb, orm-wavelet, "
                        "orm-wavelet-u, 3dgs, orm-wavelet-u-j2).")
     @click.option("--repeats", type=int, default=1, show_default=True, help="Runs per row (seeds seed..seed+K-1).")
-    @config_options("prepare", "views", "downscale")
+    @config_options("prepare", "views", "downscale", "mirror")
     @preset_option
     @workspace_option
     @click.pass_obj
-    def ablate(obj, scene, rows, repeats, views, downscale, preset):
-        """The paper's ablation on SCENE: one workspace per row under -w ROOT, and ROOT/ablation.{md,csv,json,png}."""
+    def ablate(obj, scene, rows, repeats, views, downscale, mirror, preset):
+        """The paper's ablation on SCENE: one workspace per row under -w ROOT, and ROOT/ablation.{md,csv,json,png}.
+        Every row trains on the same prepared views (--mirror none: the photos alone, as in the paper)."""
         from .ablation import aggregate, parse_rows, run_ablation, write_outputs
         from .progress import results
 
@@ -206,7 +207,8 @@ def register(cli, stage_common, workspace_option) -> None:
             raise click.BadParameter("must be >= 1", param_hint="--repeats")
         root = obj.ws().root
         row_list = parse_rows(rows)
-        records = run_ablation(obj, scene, root, row_list, repeats, preset, {"views": views, "downscale": downscale})
+        records = run_ablation(obj, scene, root, row_list, repeats, preset, {"views": views, "downscale": downscale,
+                                                                               "mirror": mirror})
         write_outputs(root, aggregate(records, row_list), records)
         results.print((root / "ablation.md").read_text())
 

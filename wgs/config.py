@@ -40,10 +40,11 @@ class PrepareConfig:
     # auto: when agreement cuts more than this share of the network's object area (mean over the
     # views), the views disagree on what the object is, and the scene goes on without masks
     mask_max_cut: float = 0.3
-    # "auto": where the object's leave-one-out silhouettes back a mirror plane (wgs.shape.symmetry),
-    # the training photos' mirror images join them as training views (for objects symmetric in shape
-    # and colour: the check sees masks only); "none": never
-    mirror: str = "none"
+    # where the object's leave-one-out silhouettes back a mirror plane (wgs.shape.symmetry), the
+    # training photos' mirror images join them as training views: "outline" teaches their masks only
+    # (objects symmetric in shape), "full" their colours too (symmetric in shape and colour: the
+    # check sees masks only); "none": no mirror views
+    mirror: str = "outline"
     mirror_min_gain: float = 0.02  # the mirror must raise the mean leave-one-out silhouette IoU by this
     # ... and the hull of the photos and their mirror images may miss at most this share of the
     # photos' masks (mean over the photos): a plane the object only roughly follows cuts it
@@ -69,6 +70,7 @@ class TrainConfig(DensifyParams):
     lr_shN: float = 2.5e-3 / 20
     ssim_weight: float = 0.2
     mask_weight: float = 0.1
+    outline_weight: float = 1.0  # weight of |alpha - mask| at views that teach the outline only (mirror views)
     random_background: bool = True
     init_points: int = 5000  # visual-hull points at most
     hull_resolution: int = 96
@@ -395,7 +397,8 @@ def as_dict(cfg: Any) -> dict[str, Any]:
 CHOICES: dict[str, tuple[str, ...]] = {"strategy": ("orm", "offline-rm", "loo"), "domain": ("wavelet", "rgb"),
                                        "poses": ("sphere", "arc"), "start": ("auto", "coarse", "hull"),
                                        "lpips_net": ("alex", "vgg"), "diffusion": ("embedded", "controlnet"),
-                                       "matcher": ("auto", "exhaustive", "sequential"), "mirror": ("auto", "none")}
+                                       "matcher": ("auto", "exhaustive", "sequential"),
+                                       "mirror": ("none", "outline", "full")}
 
 
 # the allowed range of a numeric field, inclusive (None: open), whichever stage's config holds it

@@ -3,6 +3,8 @@
 Adam per parameter group with 3DGS learning rates (means scaled by the scene extent, exponentially
 decayed), L = 0.8·L1 + 0.2·(1 - SSIM) (+ a small alpha-vs-mask term when masks exist), random
 backgrounds when masks exist, SH degree raised on a schedule, densification and floater removal.
+A view whose image does not show the object's colours (`Frame.shows_colour`) teaches its mask
+only: L = outline_weight · |alpha - mask|.
 """
 
 from __future__ import annotations
@@ -93,6 +95,14 @@ def photometric_loss(render: torch.Tensor, target: torch.Tensor, ssim_weight: fl
     return (per_px * weight).sum() / weight.sum().clamp_min(1.0)
 
 
+def outline_loss(alpha: torch.Tensor, mask: torch.Tensor, weight: float, pixel_weight: torch.Tensor | None
+                 ) -> torch.Tensor:
+    """weight · mean |alpha - mask| over [H, W] (alpha [H, W, 1]), optionally weighted per pixel by [H, W]."""
+    err = (alpha[..., 0] - mask).abs()
+    return weight * (err.mean() if pixel_weight is None else
+                     (err * pixel_weight).sum() / pixel_weight.sum().clamp_min(1.0))
+
+
 def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, device: torch.device, *, extent: float,
                     desc: str = "train", seed: int = 0, pixel_weights: PixelWeights | None = None,
                     has_masks: bool = True, on_step: Callable[[int, Splats], None] | None = None,
@@ -113,6 +123,7 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
     gen = torch.Generator().manual_seed(seed)
     imgs = [f.image.to(device) for f in frames]
     masks = [f.mask.to(device) if (has_masks and f.mask is not None) else None for f in frames]
+    outline_only = [not f.shows_colour and m is not None for f, m in zip(frames, masks, strict=True)]
     cams = [(f.viewmat.to(device), f.K.to(device), f.width, f.height) for f in frames]
     max_deg = int(math.isqrt(1 + params["shN"].shape[1])) - 1
     decay = (cfg.lr_means_final / cfg.lr_means) ** (1.0 / max(cfg.iterations, 1))
@@ -186,11 +197,12 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
                                              bg)
             with record_function("wgs:loss"):
                 weight = pixel_weights(i, it) if pixel_weights is not None else None
-                loss = photometric_loss(rgb, target, cfg.ssim_weight, weight)
-                if masks[i] is not None and cfg.mask_weight > 0:
-                    a_err = (alpha[..., 0] - masks[i]).abs()
-                    loss = loss + cfg.mask_weight * (a_err.mean() if weight is None else
-                                                     (a_err * weight).sum() / weight.sum().clamp_min(1.0))
+                if outline_only[i]:  # the image is not the object's: only where it is counts
+                    loss = outline_loss(alpha, masks[i], cfg.outline_weight, weight)
+                else:
+                    loss = photometric_loss(rgb, target, cfg.ssim_weight, weight)
+                    if masks[i] is not None and cfg.mask_weight > 0:
+                        loss = loss + outline_loss(alpha, masks[i], cfg.mask_weight, weight)
             if pseudo is not None and it % pseudo.every == 0 and pseudo.schedule(sched) > 0:
                 with record_function("wgs:pseudo_view"):
                     loss = loss + pseudo_loss(params, pseudo, it, sched, deg, device, cfg)

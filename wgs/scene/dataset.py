@@ -25,11 +25,14 @@ class Frame(Camera):
         name: image name in the workspace.
         image: [H, W, 3] straight (not premultiplied) colour in [0, 1], or None if not loaded.
         mask: [H, W] in [0, 1], or None.
+        shows_colour: whether the image shows the object's colours from this camera; False for a view
+            that teaches the object's outline only (its mask), such as an "outline" mirror view.
     """
 
     name: str
     image: torch.Tensor | None = None
     mask: torch.Tensor | None = None
+    shows_colour: bool = True
 
 
 @dataclass
@@ -38,6 +41,17 @@ class PreparedScene:
     norm: Normalisation
     train: list[Frame]
     test: list[Frame]
+
+    @property
+    def photos(self) -> list[Frame]:
+        """The training views that are the scene's own photos (not mirror views)."""
+        names = set(self.info["train_names"])
+        return [f for f in self.train if f.name in names]
+
+    @property
+    def colour_views(self) -> list[Frame]:
+        """The training views whose images show the object's colours (all but outline-only views)."""
+        return [f for f in self.train if f.shows_colour]
 
     @property
     def has_masks(self) -> bool:
@@ -75,7 +89,7 @@ def load_prepared(sdir: Path, load_test_images: bool = False) -> PreparedScene:
     mirror = info.get("mirror") or {}
     if mirror.get("used"):  # the photos' mirror images are training views too (shape.symmetry)
         plane = MirrorPlane.from_json(mirror["plane"])
-        train += [mirror_frame(f, plane) for f in train]
+        train += [mirror_frame(f, plane, shows_colour=mirror.get("views") == "full") for f in train]
     return PreparedScene(info, Normalisation.from_json(info["normalisation"]), train,
                          frames(info["test_names"], load_test_images))
 

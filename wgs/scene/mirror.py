@@ -40,8 +40,9 @@ def mirror_name(name: str) -> str:
     return f"{stem}{MIRROR_SUFFIX}.{ext}" if dot else name + MIRROR_SUFFIX
 
 
-def mirror_frame(frame, plane: MirrorPlane):
-    """The view of `frame`'s camera reflected across the plane, its image and mask flipped left-right.
+def mirror_frame(frame, plane: MirrorPlane, shows_colour: bool = True):
+    """The view of `frame`'s camera reflected across the plane, its image and mask flipped left-right
+    (`shows_colour`: whether training may use the flipped image's colours, or its mask only).
 
     A world point x at pixel (u, v) of the frame is at (W - u, v) of the result, reflected: the
     world-to-camera becomes F [R | t] M (M the reflection, F = diag(-1, 1, 1) in the camera), and
@@ -55,4 +56,4 @@ def mirror_frame(frame, plane: MirrorPlane):
     K[0, 2] = frame.width - K[0, 2]
     flip = (lambda t: t.flip(1).contiguous() if t is not None else None)  # noqa: E731
     return replace(frame, K=K, viewmat=F @ frame.viewmat @ M, name=mirror_name(frame.name),
-                   image=flip(frame.image), mask=flip(frame.mask))
+                   image=flip(frame.image), mask=flip(frame.mask), shows_colour=shows_colour)

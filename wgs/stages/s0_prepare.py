@@ -91,13 +91,16 @@ def find_mirror_views(scene_dir: Path, cfg: PrepareConfig) -> dict | None:
     frames = load_prepared(scene_dir).train
     try:
         record = mirror_check(frames, cfg.mirror_min_gain, cfg.mirror_max_missed, cfg.mirror_directions)
+        record["views"] = cfg.mirror
     except InputError:
         log("mirror: the training masks share no region -> no mirror views")
         return None
     ious = (f"leave-one-out silhouette IoU {record['leave_one_out_iou']:.3f} -> "
             f"{record['leave_one_out_iou_mirrored']:.3f}")
     if record["used"]:
-        log(f"mirror: the {len(frames)} training photos' mirror images join them as training views ({ious})")
+        taught = "their outlines" if cfg.mirror == "outline" else "their outlines and colours"
+        log(f"mirror: the {len(frames)} training photos' mirror images join them as training views, teaching "
+            f"{taught} ({ious})")
     elif record["missed"] > cfg.mirror_max_missed:
         log(f"mirror: the best mirror plane ({ious}) would cut {100 * record['missed']:.1f} % of the photos' masks "
             "-> no mirror views")
@@ -117,7 +120,7 @@ def import_scene(run: StageRun, ws: Workspace, scene_dir: Path, scene: RawScene,
     log(f"prepare: {scene.format} scene, {len(scene.train)} training + {len(scene.test)} test views")
     info = prepare(scene, cfg, run.dir)
     log(mask_line(info["masks"], ws.output("scene", "masks_sheet")))
-    if cfg.mirror == "auto" and info["has_masks"]:
+    if cfg.mirror != "none" and info["has_masks"]:
         info["mirror"] = find_mirror_views(run.dir, cfg)
         atomic_write_json(run.dir / "scene.json", info)
     run.record["summary"] = {

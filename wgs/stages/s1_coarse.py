@@ -28,7 +28,7 @@ from .shared import background_for, initial_splats, member_file, subbands_hwc
 def write_coarse_outputs(run: StageRun, scene: PreparedScene, splats: Splats, device: torch.device) -> dict:
     bg = background_for(scene)
     per_view = {}
-    for f in scene.train:
+    for f in scene.colour_views:
         ref = composite(f.image, f.mask, bg)
         rgb, _ = render_frame(splats, f, device, bg)
         write_png(run.path("renders", f.name), rgb.numpy())

@@ -76,8 +76,9 @@ def run_orm(cfg: MaskDataConfig, scene: PreparedScene, device: torch.device, see
 
     def snapshot(it: int, params: Splats) -> None:
         if it >= cfg.warmup and it % cfg.pair_every == 0:
-            for v in range(len(scene.train)):
-                writer.write(params, v, it, regions.hidden(v, it), "gd")
+            for v, f in enumerate(scene.train):
+                if f.shows_colour:
+                    writer.write(params, v, it, regions.hidden(v, it), "gd")
 
     res = train_gaussians(initial_splats(scene, cfg, seed), scene.train, cfg, device, extent=1.0,
                           desc=f"mask-data {cfg.strategy}", seed=seed, pixel_weights=weights,
@@ -87,8 +88,8 @@ def run_orm(cfg: MaskDataConfig, scene: PreparedScene, device: torch.device, see
 
 def run_loo(cfg: MaskDataConfig, scene: PreparedScene, device: torch.device, seed: int, writer: PairWriter
             ) -> dict[str, Any]:
-    n = len(scene.train)
-    for left_out in range(n):
+    left_outs = [i for i, f in enumerate(scene.train) if f.shows_colour]  # outline-only views make no pairs
+    for k, left_out in enumerate(left_outs):
         keep = [f for i, f in enumerate(scene.train) if i != left_out]
         sub = PreparedScene(scene.info, scene.norm, keep, [])
 
@@ -97,18 +98,18 @@ def run_loo(cfg: MaskDataConfig, scene: PreparedScene, device: torch.device, see
                 writer.write(params, v, it, None, f"loo{v}")
 
         train_gaussians(initial_splats(sub, cfg, seed), keep, cfg, device, extent=1.0,
-                        desc=f"mask-data loo {left_out + 1}/{n}", seed=seed, has_masks=scene.has_masks,
+                        desc=f"mask-data loo {k + 1}/{len(left_outs)}", seed=seed, has_masks=scene.has_masks,
                         on_step=snapshot, checkpoint=writer.run.checkpointer(f"loo{left_out}"))
-    return {"models": n, "iterations": cfg.iterations * n}
+    return {"models": len(left_outs), "iterations": cfg.iterations * len(left_outs)}
 
 
 def hf_views(ws: Workspace, scene: PreparedScene) -> list[str]:
     """The training views whose coarse render and reference subbands (coarse's `subbands`) train U."""
-    for f in scene.train:
+    for f in scene.colour_views:
         for kind in ("render", "ref"):
             if not (p := subband_file(ws, kind, f.name)).is_file():
                 raise InputError("coarse subband file missing: rerun `wgs coarse --force`", p)
-    return [f.name for f in scene.train]
+    return [f.name for f in scene.colour_views]
 
 
 def run_mask_data(ws: Workspace, cfg: MaskDataConfig, env: StageEnv, force: bool = False) -> bool:

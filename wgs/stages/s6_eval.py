@@ -127,13 +127,14 @@ def shape_reference(scene, frames: list[Frame], resolution: int, carved: HullGri
                     ) -> dict[str, Any] | None:
     """How fat the visual hull is: the hull of all training masks (every mask agreeing) scored at
     the test views that have masks, the same for the repair stage's carved hull where there is one,
-    and the leave-one-out estimate that needs no test views (the hull of the other training masks at
-    each training camera). None without masks, or where the training masks share no region."""
+    and the leave-one-out estimate that needs no test views (the hull of the other photos' masks at
+    each photo's camera; mirror views play no part in it). None without masks, or where the training
+    masks share no region."""
     if not scene.has_masks:
         return None
     try:
         grid, _ = visual_hull_grid(scene.train, resolution, tolerate=0)
-        loo = leave_one_out(scene.train, resolution) if len(scene.train) >= 2 else {}
+        loo = leave_one_out(scene.photos, resolution) if len(scene.photos) >= 2 else {}
     except InputError:
         log("eval: the training masks share no region (every mask agreeing) -> no visual-hull scores")
         return None
@@ -171,9 +172,11 @@ def shape_line(coarse: dict, fine: dict, shape: dict) -> str:
     head = "silhouette IoU at the test views: " + ", ".join(parts) if parts else "no test masks"
     loo, mirror = shape["leave_one_out"], shape.get("mirror")
     if loo is not None:
-        head += f"; leave-one-out estimate (hull of the other training masks at each training camera) {loo['iou']:.3f}"
+        head += f"; leave-one-out estimate (hull of the other photos' masks at each photo's camera) {loo['iou']:.3f}"
     if mirror:
-        head += (f"; the photos' mirror images {'are' if mirror['used'] else 'are not'} training views "
+        taught = {"outline": " (their outlines)", "full": " (outlines and colours)"}.get(mirror.get("views"), "")
+        head += (f"; the photos' mirror images {'are' if mirror['used'] else 'are not'} training views"
+                 f"{taught if mirror['used'] else ''} "
                  f"(leave-one-out IoU {mirror['leave_one_out_iou']:.3f} -> {mirror['leave_one_out_iou_mirrored']:.3f}"
                  " with the mirror)")
     return head
