@@ -45,7 +45,7 @@ bench: $(VENV)/.installed
 	$(BIN)/python -m wgs.bench contention --prepared bench_out/wgs --root bench_out
 
 ablation: $(VENV)/.installed
-	$(BIN)/wgs -w ablate ablate ../shared/data/lego --views 4 --downscale 2
+	$(BIN)/wgs -w ablate ablate ../shared/data/lego --views 4 --downscale 2 --mirror none
 
 # Rebuild the repair prior shipped in wgs/prior/weights (resumable; cache in ~/.cache/wgs-prior):
 # objects from the snapshots in MIRROR (owner+name/repo, see README) + procedural ones, our coarse

@@ -36,9 +36,7 @@ os.environ.pop("WGS_LPIPS_WEIGHTS", None)
 # The smallest config that runs every stage (seconds per `wgs all` on a 48-64 px scene).
 TINY = """
 [prepare]
-mirror = "outline"
-mirror_directions = 60
-mirror_max_missed = 0.05  # the tiny scene's 64 px masks miss 3 % under its mirror: let the views exist
+mirror = "none"  # the photos alone; tests/test_end_to_end.py runs the mirror views on their own
 [coarse]
 iterations = 30
 refine_start = 10

@@ -351,25 +351,39 @@ def test_a_carving_model_carves_the_hull_and_fine_starts_there(tiny, tmp_path, k
     assert math.isfinite(json.loads((ws.stage_dir("eval") / "results.json").read_text())["psnr"])
 
 
-def test_the_mirror_check_and_the_carved_hull_are_reported(tiny):
-    """prepare looked for the object's mirror plane and kept its check either way (the photos'
-    mirror images are training views only where it passed); eval scores the carved hull at the test
-    views beside the strict one and names the mirror's check."""
+@pytest.fixture(scope="module")
+def mirrored(finished_workspace, tmp_path_factory):
+    """The tiny scene run again with the default outline mirror views (the tests' TINY config has
+    none); its 64 px masks miss 2.9 % under their mirror, so the gate is widened to let the views exist."""
+    from conftest import TINY
+
+    base, _ = finished_workspace
+    root = tmp_path_factory.mktemp("mirrored")
+    cfg = root / "wgs.toml"
+    cfg.write_text(TINY.replace('mirror = "none"', 'mirror = "outline"\nmirror_directions = 60\n'
+                                                   "mirror_max_missed = 0.05"))
+    run_all(cfg, root / "ws", base / "scene")
+    return Workspace(root / "ws")
+
+
+def test_the_mirror_check_and_the_carved_hull_are_reported(mirrored):
+    """prepare looked for the object's mirror plane and kept its check; the photos' mirror images
+    are training views that teach the outline only (no pairs, no U views); eval scores the carved
+    hull at the test views beside the strict one and names the mirror's check."""
     from wgs.config import PrepareConfig
     from wgs.scene.dataset import load_prepared
 
-    _, _, ws, _ = tiny
+    ws = mirrored
     summary = ws.manifest("scene")["summary"]
     mirror = summary["mirror"]
     assert len(mirror["plane"]["normal"]) == 3 and 0 < mirror["leave_one_out_iou"] <= 1
     gain = mirror["leave_one_out_iou_mirrored"] - mirror["leave_one_out_iou"]
     cfg = PrepareConfig(**ws.manifest("scene")["config"])
     assert mirror["used"] == (gain >= cfg.mirror_min_gain and mirror["missed"] <= cfg.mirror_max_missed)
-    train = load_prepared(ws.stage_dir("scene")).train
-    assert len(train) == (2 if mirror["used"] else 1) * summary["num_train"]
-    assert sum(f.name.endswith(".mirror.png") for f in train) == len(train) - summary["num_train"]
-    # the tests' config asks for outline mirror views: their masks train, their images make no pairs
     assert mirror["used"], mirror
+    train = load_prepared(ws.stage_dir("scene")).train
+    assert len(train) == 2 * summary["num_train"]
+    assert sum(f.name.endswith(".mirror.png") for f in train) == summary["num_train"]
     assert mirror["views"] == "outline" and all(f.shows_colour != f.name.endswith(".mirror.png") for f in train)
     photos = {f.name for f in train if f.shows_colour}
     index = json.loads(ws.output("mask_data", "index").read_text())
@@ -377,9 +391,10 @@ def test_the_mirror_check_and_the_carved_hull_are_reported(tiny):
     shape = json.loads(ws.output("eval", "results").read_text())["shape"]
     assert shape["mirror"] == mirror and 0 < shape["carved_hull_test"]["iou"] <= 1
     report = ws.output("eval", "report").read_text()
-    assert "carved hull" in report and "mirror images" in report
+    assert "carved hull" in report and "mirror images are training views (their outlines)" in report
     per_view = json.loads((ws.stage_dir("eval") / "per_view_shape.json").read_text())
     assert set(per_view["carved_hull_test"]) == set(per_view["hull_test"]) and per_view["hull_test"]
+    assert len(per_view["leave_one_out"]) == summary["num_train"]  # the photos only
 
 
 def test_masks_that_share_no_region_train_without_carving_or_hull_scores(tiny, tmp_path):

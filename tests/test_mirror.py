@@ -129,8 +129,9 @@ def test_no_mirror_where_its_views_would_cut_the_photos_masks(duck_views):
 
 
 def test_an_outline_view_teaches_its_mask_and_not_its_image():
-    """A view with shows_colour=False (an "outline" mirror view) trains opacity toward its mask only:
-    another image changes nothing, another mask changes the model."""
+    """A view with shows_colour=False (an "outline" mirror view) trains opacity away from outside
+    its mask only: another image changes nothing, another mask changes the model, and a mask that
+    allows matter everywhere asks nothing of the model at that view."""
     from conftest import ring_w2c
 
     from wgs.config import TrainConfig
@@ -157,3 +158,9 @@ def test_an_outline_view_teaches_its_mask_and_not_its_image():
     for k in base:
         assert torch.allclose(base[k], other_image[k], atol=1e-6), k
     assert max(float((base[k] - other_mask[k]).abs().max()) for k in base if base[k].numel()) > 1e-3
+
+    outline = Frame(K, w2c[1], 16, 16, name="b.mirror.png", image=torch.zeros(16, 16, 3), mask=torch.ones(16, 16),
+                    shows_colour=False)
+    splats = create_splats(points, colours, torch.full((60,), 0.05), 0)
+    res = train_gaussians(splats, [outline], cfg, torch.device("cpu"), extent=1.0, seed=0)
+    assert res.losses == [0.0] * cfg.iterations

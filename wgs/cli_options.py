@@ -32,8 +32,9 @@ MEANING: dict[str, str] = {
     "mask_max_cut": "auto masks: when agreement cuts more than this share of the network's object area, the "
                     "views disagree on the object and the scene goes on without masks (1: always keep them).",
     "mirror": "Where the object's leave-one-out silhouettes back a mirror plane, the training photos' mirror "
-              "images join them as training views: outline teaches their masks only (objects symmetric in "
-              "shape), full their colours too (symmetric in shape and colour); none: no mirror views.",
+              "images join them as training views: outline teaches where the object is not (their masks carve; "
+              "objects symmetric in shape), full their colours too (symmetric in shape and colour); none: no "
+              "mirror views.",
     # 3DGS training (coarse, fine)
     "iterations": "Training iterations.",
     "max_seconds": "Stop training after this many seconds.",

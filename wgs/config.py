@@ -41,9 +41,9 @@ class PrepareConfig:
     # views), the views disagree on what the object is, and the scene goes on without masks
     mask_max_cut: float = 0.3
     # where the object's leave-one-out silhouettes back a mirror plane (wgs.shape.symmetry), the
-    # training photos' mirror images join them as training views: "outline" teaches their masks only
-    # (objects symmetric in shape), "full" their colours too (symmetric in shape and colour: the
-    # check sees masks only); "none": no mirror views
+    # training photos' mirror images join them as training views: "outline" teaches where the object
+    # is not (their masks carve: objects symmetric in shape), "full" their colours too (symmetric in
+    # shape and colour: the check sees masks only); "none": no mirror views
     mirror: str = "outline"
     mirror_min_gain: float = 0.02  # the mirror must raise the mean leave-one-out silhouette IoU by this
     # ... and the hull of the photos and their mirror images may miss at most this share of the
@@ -70,7 +70,10 @@ class TrainConfig(DensifyParams):
     lr_shN: float = 2.5e-3 / 20
     ssim_weight: float = 0.2
     mask_weight: float = 0.1
-    outline_weight: float = 1.0  # weight of |alpha - mask| at views that teach the outline only (mirror views)
+    # views that teach the outline only (mirror views): the weight of the opacity outside their mask
+    # grown by this many pixels (the photos decide within that margin)
+    outline_weight: float = 1.0
+    outline_margin_px: int = 1
     random_background: bool = True
     init_points: int = 5000  # visual-hull points at most
     hull_resolution: int = 96
@@ -406,7 +409,7 @@ RANGES: dict[str, tuple[float, float | None]] = {"views": (2, None), "downscale"
                                                  "ensemble": (1, None), "symmetries": (1, 8),
                                                  "repair_gain_views": (0, None), "mask_agreement": (0.0, 1.0),
                                                  "mask_max_cut": (0.0, 1.0), "mirror_directions": (1, None),
-                                                 "mirror_max_missed": (0.0, 1.0)}
+                                                 "mirror_max_missed": (0.0, 1.0), "outline_margin_px": (0, None)}
 
 
 def check_choices(cfg: Any) -> None:

@@ -1,4 +1,5 @@
-"""Random region masks for the mask-data stage (WaveletGaussian's online random masking).
+"""Masks: `grow` (a mask's reach), and random region masks for the mask-data stage
+(WaveletGaussian's online random masking).
 
 Each training view gets `n_regions` ellipses placed on the object. Their union is scaled so that
 it hides `coverage` of the object's mask area at every iteration; with `offline=False` each region
@@ -11,6 +12,11 @@ import math
 from dataclasses import dataclass
 
 import torch
+
+
+def grow(image: torch.Tensor, px: int) -> torch.Tensor:
+    """[H, W] float: each pixel the largest value within px pixels (a square's reach)."""
+    return torch.nn.functional.max_pool2d(image[None, None].float(), 2 * px + 1, 1, px)[0, 0]
 
 
 @dataclass

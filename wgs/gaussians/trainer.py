@@ -3,8 +3,10 @@
 Adam per parameter group with 3DGS learning rates (means scaled by the scene extent, exponentially
 decayed), L = 0.8·L1 + 0.2·(1 - SSIM) (+ a small alpha-vs-mask term when masks exist), random
 backgrounds when masks exist, SH degree raised on a schedule, densification and floater removal.
-A view whose image does not show the object's colours (`Frame.shows_colour`) teaches its mask
-only: L = outline_weight · |alpha - mask|.
+A view whose image does not show the object's colours (`Frame.shows_colour`) teaches where the
+object is not: L = outline_weight · mean(alpha outside its mask grown by outline_margin_px). It
+never asks for matter, so where it and the photos disagree (a mirror plane a little off, an object
+a little asymmetric) the photos decide.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from torch.profiler import record_function
 
 from ..config import TrainConfig
 from ..errors import WgsError
+from ..masking import grow
 from ..metrics import ssim_map_fast
 from ..progress import progress_bar
 from ..resume import Checkpointer, check_interrupt, deferred_sigint, rng_state, set_rng_state
@@ -95,12 +98,9 @@ def photometric_loss(render: torch.Tensor, target: torch.Tensor, ssim_weight: fl
     return (per_px * weight).sum() / weight.sum().clamp_min(1.0)
 
 
-def outline_loss(alpha: torch.Tensor, mask: torch.Tensor, weight: float, pixel_weight: torch.Tensor | None
-                 ) -> torch.Tensor:
-    """weight · mean |alpha - mask| over [H, W] (alpha [H, W, 1]), optionally weighted per pixel by [H, W]."""
-    err = (alpha[..., 0] - mask).abs()
-    return weight * (err.mean() if pixel_weight is None else
-                     (err * pixel_weight).sum() / pixel_weight.sum().clamp_min(1.0))
+def weighted_mean(err: torch.Tensor, pixel_weight: torch.Tensor | None) -> torch.Tensor:
+    """Mean of [H, W], optionally weighted per pixel by [H, W]."""
+    return err.mean() if pixel_weight is None else (err * pixel_weight).sum() / pixel_weight.sum().clamp_min(1.0)
 
 
 def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, device: torch.device, *, extent: float,
@@ -123,7 +123,9 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
     gen = torch.Generator().manual_seed(seed)
     imgs = [f.image.to(device) for f in frames]
     masks = [f.mask.to(device) if (has_masks and f.mask is not None) else None for f in frames]
-    outline_only = [not f.shows_colour and m is not None for f, m in zip(frames, masks, strict=True)]
+    # where each outline-only view allows matter (None: a view with colours)
+    room = [grow(m, cfg.outline_margin_px) if (m is not None and not f.shows_colour) else None
+            for f, m in zip(frames, masks, strict=True)]
     cams = [(f.viewmat.to(device), f.K.to(device), f.width, f.height) for f in frames]
     max_deg = int(math.isqrt(1 + params["shN"].shape[1])) - 1
     decay = (cfg.lr_means_final / cfg.lr_means) ** (1.0 / max(cfg.iterations, 1))
@@ -197,12 +199,12 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
                                              bg)
             with record_function("wgs:loss"):
                 weight = pixel_weights(i, it) if pixel_weights is not None else None
-                if outline_only[i]:  # the image is not the object's: only where it is counts
-                    loss = outline_loss(alpha, masks[i], cfg.outline_weight, weight)
+                if room[i] is not None:  # no colours (and so nothing for pixel weights to hide): only the outline
+                    loss = cfg.outline_weight * (alpha[..., 0] * (1 - room[i])).mean()
                 else:
                     loss = photometric_loss(rgb, target, cfg.ssim_weight, weight)
                     if masks[i] is not None and cfg.mask_weight > 0:
-                        loss = loss + outline_loss(alpha, masks[i], cfg.mask_weight, weight)
+                        loss = loss + cfg.mask_weight * weighted_mean((alpha[..., 0] - masks[i]).abs(), weight)
             if pseudo is not None and it % pseudo.every == 0 and pseudo.schedule(sched) > 0:
                 with record_function("wgs:pseudo_view"):
                     loss = loss + pseudo_loss(params, pseudo, it, sched, deg, device, cfg)

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import torch
 
+from ..masking import grow
 from ..scene.camera import Camera
 from .hull import HullGrid, box_rays, march, pixel_lookup, silhouette
 from .scores import leave_one_out, mean_scores
@@ -37,11 +38,6 @@ class CarveParams:
     # V is left out of an object whose leave-one-out IoU (each training mask against the hull of the
     # others) falls by more than this when V carves those hulls
     volume_check_margin: float = 0.005
-
-
-def grow(image: torch.Tensor, px: int) -> torch.Tensor:
-    """[H, W] float: each pixel the largest value within px pixels (a square's reach)."""
-    return torch.nn.functional.max_pool2d(image[None, None].float(), 2 * px + 1, 1, px)[0, 0]
 
 
 def sure_background(object_prob: torch.Tensor, params: CarveParams) -> torch.Tensor:

@@ -22,13 +22,14 @@ from ..gaussians.trainer import render_frame
 from ..io import atomic_write_json
 from ..io.exr import write_subbands
 from ..io.images import write_png
+from ..masking import grow
 from ..models.repair import load_repairer
 from ..models.storage import load_model
 from ..prior import WEIGHTS_S, WEIGHTS_V
 from ..progress import log
 from ..scene.dataset import load_prepared
 from ..scene.orbit import novel_views, sphere_views
-from ..shape.carve import carve, carve_with_volume, grow, sure_background
+from ..shape.carve import carve, carve_with_volume, sure_background
 from ..shape.features import hull_channels, predict_object, silhouette_inputs
 from ..shape.hull import HullGrid, save_grid, silhouette, visual_hull_grid
 from ..workspace import StageRun, Workspace
