@@ -26,7 +26,8 @@ class Frame(Camera):
         image: [H, W, 3] straight (not premultiplied) colour in [0, 1], or None if not loaded.
         mask: [H, W] in [0, 1], or None.
         shows_colour: whether the image shows the object's colours from this camera; False for a view
-            that teaches the object's outline only (its mask), such as an "outline" mirror view.
+            whose mask only says where the object is not (an "outline" mirror view: training carves
+            with it, see `gaussians.trainer`).
     """
 
     name: str
