@@ -92,10 +92,7 @@ def photometric_loss(render: torch.Tensor, target: torch.Tensor, ssim_weight: fl
     """0.8·L1 + 0.2·(1 - SSIM) on [H, W, 3] images, optionally weighted per pixel by [H, W]."""
     l1 = (render - target).abs().mean(-1)
     ssim = ssim_map_fast(render.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None], padding="reflect", eps=1e-12)
-    per_px = (1 - ssim_weight) * l1 + ssim_weight * (1 - ssim[0].mean(0))
-    if weight is None:
-        return per_px.mean()
-    return (per_px * weight).sum() / weight.sum().clamp_min(1.0)
+    return weighted_mean((1 - ssim_weight) * l1 + ssim_weight * (1 - ssim[0].mean(0)), weight)
 
 
 def weighted_mean(err: torch.Tensor, pixel_weight: torch.Tensor | None) -> torch.Tensor:
@@ -198,10 +195,10 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
                 rgb, alpha, meta = rasterize(means, quats, scales, opac, sh[:, : (deg + 1) ** 2], viewmat, K, w, h,
                                              bg)
             with record_function("wgs:loss"):
-                weight = pixel_weights(i, it) if pixel_weights is not None else None
                 if room[i] is not None:  # no colours (and so nothing for pixel weights to hide): only the outline
                     loss = cfg.outline_weight * (alpha[..., 0] * (1 - room[i])).mean()
                 else:
+                    weight = pixel_weights(i, it) if pixel_weights is not None else None
                     loss = photometric_loss(rgb, target, cfg.ssim_weight, weight)
                     if masks[i] is not None and cfg.mask_weight > 0:
                         loss = loss + cfg.mask_weight * weighted_mean((alpha[..., 0] - masks[i]).abs(), weight)
