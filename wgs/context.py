@@ -47,9 +47,13 @@ class Ctx:
 
     def torch_device(self):
         from .device import resolve_device
+        from .gaussians.render import pick_backend
 
         dev = resolve_device(self.device)
-        log(f"device: {dev}")
+        backend = pick_backend(dev)
+        slow = " (the reference: slower than numba on a CPU; pip install 'wgs[cuda]' for gsplat)" if (
+            dev.type != "cpu" and backend == "torch") else ""
+        log(f"device: {dev}, rasterizer: {backend}{slow}")
         return dev
 
     def env(self, device=None, **kw: Any):
