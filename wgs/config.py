@@ -74,6 +74,9 @@ class TrainConfig(DensifyParams):
     # grown by this many pixels (the photos decide within that margin)
     outline_weight: float = 1.0
     outline_margin_px: int = 1
+    # the views at half size (2x2 pixel means) for this fraction of the schedule: the early
+    # iterations, which fit the coarse shape, cost about a third as much
+    half_size_until: float = 0.0
     random_background: bool = True
     init_points: int = 5000  # visual-hull points at most
     hull_resolution: int = 96
@@ -100,6 +103,7 @@ class CoarseConfig(CurveConfig, TrainConfig):
     # averages their repaired renders: their sparse-view artifacts differ, the object does not
     # (docs/repair-prior.md)
     ensemble: int = 6
+    half_size_until: float = 0.3
 
 
 @dataclass
@@ -114,6 +118,7 @@ class MaskDataConfig(TrainConfig):
     drift_period: float = 400.0  # iterations
     warmup: int = 500  # no pairs before this iteration
     pair_every: int = 100
+    half_size_until: float = 0.3
 
 
 @dataclass
@@ -409,7 +414,8 @@ RANGES: dict[str, tuple[float, float | None]] = {"views": (2, None), "downscale"
                                                  "ensemble": (1, None), "symmetries": (1, 8),
                                                  "repair_gain_views": (0, None), "mask_agreement": (0.0, 1.0),
                                                  "mask_max_cut": (0.0, 1.0), "mirror_directions": (1, None),
-                                                 "mirror_max_missed": (0.0, 1.0), "outline_margin_px": (0, None)}
+                                                 "mirror_max_missed": (0.0, 1.0), "outline_margin_px": (0, None),
+                                                 "half_size_until": (0.0, 1.0)}
 
 
 def check_choices(cfg: Any) -> None:

@@ -26,7 +26,7 @@ from ..masking import grow
 from ..metrics import ssim_map_fast
 from ..progress import progress_bar
 from ..resume import Checkpointer, check_interrupt, deferred_sigint, rng_state, set_rng_state
-from ..scene.dataset import Frame
+from ..scene.dataset import Frame, halved
 from ..threads import adapt as adapt_threads
 from .init import floater_mask
 from .render import rasterize
@@ -70,6 +70,18 @@ class TrainResult:
     losses: list[float] = field(default_factory=list)
     curve: list[dict[str, float]] = field(default_factory=list)  # probe points: seconds, iteration, metrics
     probe_seconds: float = 0.0
+
+
+class TrainingViews:
+    """The training frames as the loop reads them, on the device: images, masks (None without),
+    where each outline-only view allows matter (None for a view with colours), and cameras."""
+
+    def __init__(self, frames: list[Frame], device: torch.device, has_masks: bool, outline_margin_px: int):
+        self.images = [f.image.to(device) for f in frames]
+        self.masks = [f.mask.to(device) if (has_masks and f.mask is not None) else None for f in frames]
+        self.room = [grow(m, outline_margin_px) if (m is not None and not f.shows_colour) else None
+                     for f, m in zip(frames, self.masks, strict=True)]
+        self.cameras = [(f.viewmat.to(device), f.K.to(device), f.width, f.height) for f in frames]
 
 
 def make_optimizers(params: Splats, cfg: TrainConfig, extent: float) -> dict[str, torch.optim.Optimizer]:
@@ -118,12 +130,11 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
     strategy = strategy_from(cfg, extent)
     state = strategy.initial_state()
     gen = torch.Generator().manual_seed(seed)
-    imgs = [f.image.to(device) for f in frames]
-    masks = [f.mask.to(device) if (has_masks and f.mask is not None) else None for f in frames]
-    # where each outline-only view allows matter (None: a view with colours)
-    room = [grow(m, cfg.outline_margin_px) if (m is not None and not f.shows_colour) else None
-            for f, m in zip(frames, masks, strict=True)]
-    cams = [(f.viewmat.to(device), f.K.to(device), f.width, f.height) for f in frames]
+    sizes = [TrainingViews(frames, device, has_masks, cfg.outline_margin_px)]  # full size, then half
+    pseudo_sizes = [pseudo.frames if pseudo is not None else []]
+    if cfg.half_size_until > 0:
+        sizes.append(TrainingViews([halved(f) for f in frames], device, has_masks, cfg.outline_margin_px))
+        pseudo_sizes.append([halved(f) for f in pseudo_sizes[0]])
     max_deg = int(math.isqrt(1 + params["shN"].shape[1])) - 1
     decay = (cfg.lr_means_final / cfg.lr_means) ** (1.0 / max(cfg.iterations, 1))
     losses: list[float] = []
@@ -183,28 +194,33 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
             if not order:
                 order = torch.randperm(len(frames), generator=gen).tolist()
             i = order.pop()
-            viewmat, K, w, h = cams[i]
-            if masks[i] is not None and cfg.random_background:
+            half = sched <= cfg.half_size_until * cfg.iterations and len(sizes) > 1
+            views = sizes[int(half)]
+            image, mask, room = views.images[i], views.masks[i], views.room[i]
+            viewmat, K, w, h = views.cameras[i]
+            if mask is not None and cfg.random_background:
                 bg = torch.rand(3, generator=gen).to(device)
             else:
-                bg = torch.ones(3, device=device) if masks[i] is not None else torch.zeros(3, device=device)
-            target = imgs[i] if masks[i] is None else imgs[i] * masks[i][..., None] + bg * (1 - masks[i][..., None])
+                bg = torch.ones(3, device=device) if mask is not None else torch.zeros(3, device=device)
+            target = image if mask is None else image * mask[..., None] + bg * (1 - mask[..., None])
             deg = min(max_deg, (sched - 1) // max(cfg.sh_increase_every, 1))
             with record_function("wgs:render"):
                 means, quats, scales, opac, sh = activate(params)
                 rgb, alpha, meta = rasterize(means, quats, scales, opac, sh[:, : (deg + 1) ** 2], viewmat, K, w, h,
                                              bg)
             with record_function("wgs:loss"):
-                if room[i] is not None:  # no colours (and so nothing for pixel weights to hide): only the outline
-                    loss = cfg.outline_weight * (alpha[..., 0] * (1 - room[i])).mean()
+                if room is not None:  # no colours (and so nothing for pixel weights to hide): only the outline
+                    loss = cfg.outline_weight * (alpha[..., 0] * (1 - room)).mean()
                 else:
                     weight = pixel_weights(i, it) if pixel_weights is not None else None
+                    if weight is not None and half:
+                        weight = torch.nn.functional.avg_pool2d(weight[None, None], 2)[0, 0]
                     loss = photometric_loss(rgb, target, cfg.ssim_weight, weight)
-                    if masks[i] is not None and cfg.mask_weight > 0:
-                        loss = loss + cfg.mask_weight * weighted_mean((alpha[..., 0] - masks[i]).abs(), weight)
+                    if mask is not None and cfg.mask_weight > 0:
+                        loss = loss + cfg.mask_weight * weighted_mean((alpha[..., 0] - mask).abs(), weight)
             if pseudo is not None and it % pseudo.every == 0 and pseudo.schedule(sched) > 0:
                 with record_function("wgs:pseudo_view"):
-                    loss = loss + pseudo_loss(params, pseudo, it, sched, deg, device, cfg)
+                    loss = loss + pseudo_loss(params, pseudo, pseudo_sizes[int(half)], it, sched, deg, device, cfg)
             with record_function("wgs:backward"):
                 loss.backward()
             if not torch.isfinite(loss):
@@ -252,15 +268,16 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
     return TrainResult(out, it, time.perf_counter() - t0, losses, curve, probe_s)
 
 
-def pseudo_loss(params: Splats, pseudo: PseudoViews, it: int, sched: int, deg: int, device: torch.device,
-                cfg: TrainConfig) -> torch.Tensor:
-    """L1 + L2 (+ LPIPS) against one pseudo reference. Where the frame has a mask (0 where the
+def pseudo_loss(params: Splats, pseudo: PseudoViews, frames: list[Frame], it: int, sched: int, deg: int,
+                device: torch.device, cfg: TrainConfig) -> torch.Tensor:
+    """L1 + L2 (+ LPIPS) against one pseudo reference (`frames`: pseudo.frames at the size this
+    iteration trains at). Where the frame has a mask (0 where the
     silhouette model is sure of background, 1 where the object may be), the reference shows the
     background outside it and opacity is pushed to 0 there: pseudo views then carve too. Inside it
     opacity is left free, and the background stays the reference's own (a random one would turn
     the reference's background pixels near the object into white halos)."""
-    j = (it // pseudo.every) % len(pseudo.frames)
-    f = pseudo.frames[j]
+    j = (it // pseudo.every) % len(frames)
+    f = frames[j]
     bg, target = pseudo.background.to(device), f.image.to(device)
     if f.mask is not None:
         a = f.mask.to(device)[..., None]

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
@@ -34,6 +34,26 @@ class Frame(Camera):
     image: torch.Tensor | None = None
     mask: torch.Tensor | None = None
     shows_colour: bool = True
+
+
+def halved(frame: Frame) -> Frame:
+    """The frame at half its size (odd sizes drop their last row or column): each pixel the mean of
+    a 2x2 block, so that compositing on a background commutes with the halving (the colour is
+    averaged premultiplied by the mask); the intrinsics halved, since pixel centres lie at +0.5."""
+    def pool(t: torch.Tensor) -> torch.Tensor:  # [H, W, C] -> [H/2, W/2, C]
+        return torch.nn.functional.avg_pool2d(t.permute(2, 0, 1)[None], 2)[0].permute(1, 2, 0)
+
+    K = frame.K.clone()
+    K[:2] *= 0.5
+    mask = pool(frame.mask[..., None])[..., 0] if frame.mask is not None else None
+    image = frame.image
+    if image is not None:
+        if frame.mask is None:
+            image = pool(image)
+        else:
+            covered = pool(image * frame.mask[..., None])
+            image = torch.where(mask[..., None] > 0, covered / mask[..., None].clamp_min(1e-12), pool(image))
+    return replace(frame, K=K, width=frame.width // 2, height=frame.height // 2, image=image, mask=mask)
 
 
 @dataclass
