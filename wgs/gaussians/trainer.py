@@ -6,7 +6,8 @@ backgrounds when masks exist, SH degree raised on a schedule, densification and 
 A view whose image does not show the object's colours (`Frame.shows_colour`) teaches where the
 object is not: L = outline_weight · mean(alpha outside its mask grown by outline_margin_px). It
 never asks for matter, so where it and the photos disagree (a mirror plane a little off, an object
-a little asymmetric) the photos decide.
+a little asymmetric) the photos decide. The first `half_size_until` of the schedule sees every view
+at half size (`scene.dataset.halved`): those iterations fit the coarse shape at a third of the cost.
 """
 
 from __future__ import annotations
@@ -271,11 +272,11 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
 def pseudo_loss(params: Splats, pseudo: PseudoViews, frames: list[Frame], it: int, sched: int, deg: int,
                 device: torch.device, cfg: TrainConfig) -> torch.Tensor:
     """L1 + L2 (+ LPIPS) against one pseudo reference (`frames`: pseudo.frames at the size this
-    iteration trains at). Where the frame has a mask (0 where the
-    silhouette model is sure of background, 1 where the object may be), the reference shows the
-    background outside it and opacity is pushed to 0 there: pseudo views then carve too. Inside it
-    opacity is left free, and the background stays the reference's own (a random one would turn
-    the reference's background pixels near the object into white halos)."""
+    iteration trains at). Where the frame has a mask (0 where the silhouette model is sure of
+    background, 1 where the object may be), the reference shows the background outside it and
+    opacity is pushed to 0 there: pseudo views then carve too. Inside it opacity is left free, and
+    the background stays the reference's own (a random one would turn the reference's background
+    pixels near the object into white halos)."""
     j = (it // pseudo.every) % len(frames)
     f = frames[j]
     bg, target = pseudo.background.to(device), f.image.to(device)
