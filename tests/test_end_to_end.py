@@ -344,7 +344,7 @@ def test_a_carving_model_carves_the_hull_and_fine_starts_there(tiny, tmp_path, k
     assert ws.manifest("fine")["start"] == "carved hull"
     prepared = load_prepared(ws.stage_dir("scene"))
     carved = load_grid(ws.output("repair", "carved_hull"))
-    full, _ = visual_hull_grid(prepared.train, carved.resolution, tolerate=0)
+    full = visual_hull_grid(prepared.train, carved.resolution, tolerate=0)
     for f in prepared.train:
         was = silhouette(full, f)[0] & (f.mask > 0.5)
         assert not (was & ~silhouette(carved, f)[0]).any()

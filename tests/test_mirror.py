@@ -58,7 +58,7 @@ def test_hemisphere_directions_are_unit_and_spread():
 
 def test_mirror_fast_path_matches_reference(duck_views):
     others, left_out = duck_views[1:], duck_views[0]
-    grid, _ = visual_hull_grid(others, resolution=40, extent=0.7, tolerate=0)
+    grid = visual_hull_grid(others, resolution=40, extent=0.7, tolerate=0)
     rays = RayVoxels(grid, left_out, stride=2)
     normals = torch.cat([TRUE_NORMAL[None], hemisphere_directions(30)])
     offsets = torch.linspace(-0.1, 0.1, 31)
@@ -77,8 +77,8 @@ def test_the_mirror_of_a_symmetric_object_is_found_and_its_views_carve_toward_th
     angle = math.degrees(math.acos(min(1.0, abs(float(plane.normal @ TRUE_NORMAL)))))
     assert angle < 3 and abs(plane.offset) < 0.02, (record, angle)
     assert record["used"] and record["leave_one_out_iou_mirrored"] > record["leave_one_out_iou"] + 0.05
-    grid, _ = visual_hull_grid(duck_views, resolution=64, extent=0.7, tolerate=0)
-    both, _ = visual_hull_grid(duck_views + [mirror_frame(f, plane) for f in duck_views], resolution=64,
+    grid = visual_hull_grid(duck_views, resolution=64, extent=0.7, tolerate=0)
+    both = visual_hull_grid(duck_views + [mirror_frame(f, plane) for f in duck_views], resolution=64,
                                extent=0.7, tolerate=0)
     unseen = [camera(a, e) for a, e in ((150, -60), (330, -40), (60, 80), (240, 5))]
     iou = lambda g: sum(silhouette_scores(silhouette(g, c)[0], true_mask(duck, c))["iou"] for c in unseen) / 4  # noqa: E731

@@ -10,7 +10,15 @@ from wgs.scene.camera import Camera
 from wgs.scene.dataset import Frame
 from wgs.scene.orbit import look_at
 from wgs.shape.carve import CarveParams, carve
-from wgs.shape.hull import HullGrid, grid_centres, silhouette, silhouette_torch, visual_hull_grid
+from wgs.shape.hull import (
+    HullGrid,
+    grid_centres,
+    hull_votes,
+    hull_votes_torch,
+    silhouette,
+    silhouette_torch,
+    visual_hull_grid,
+)
 from wgs.shape.scores import leave_one_out, mean_scores, silhouette_scores
 
 SIZE, FOCAL = 96, 120.0
@@ -50,7 +58,7 @@ def frames_of(inside, cams) -> list[Frame]:
 @pytest.fixture(scope="module")
 def mug_hull():
     side = frames_of(mug, [camera(a, 0.0) for a in (0, 90, 180, 270)])
-    grid, _ = visual_hull_grid(side, resolution=64, extent=0.7, tolerate=0)
+    grid = visual_hull_grid(side, resolution=64, extent=0.7, tolerate=0)
     return side, grid
 
 
@@ -65,10 +73,24 @@ def test_silhouette_fast_path_matches_reference(mug_hull):
         assert fast.sum() > 100
 
 
+@pytest.mark.parametrize("need", [1, 3, 4])
+def test_hull_votes_fast_path_matches_reference(mug_hull, need):
+    side, _ = mug_hull
+    c = side[3]  # a view of another size: the kernel reads every mask from one packed buffer
+    frames = side[:3] + [Frame(c.K * torch.tensor([[0.5], [0.5], [1.0]]), c.viewmat, SIZE // 2, SIZE // 2,
+                               name="half.png", mask=(torch.rand(SIZE // 2, SIZE // 2) > 0.5).float())]
+    points = torch.rand(20000, 3) * 1.6 - 0.8
+    fast, ref = hull_votes(frames, points, need), hull_votes_torch(frames, points, need)
+    assert fast.dtype == torch.int32 and fast.shape == (20000,)
+    assert torch.equal(fast >= need, ref >= need)
+    assert torch.equal(fast[ref >= need], ref[ref >= need])
+    assert 0 < int((ref >= need).sum()) < 20000
+
+
 def test_hull_silhouette_is_the_mask_at_training_cameras_and_holds_the_object_elsewhere():
     sphere = lambda p: p.norm(dim=-1) < 0.3  # noqa: E731
     frames = frames_of(sphere, [camera(a, e) for a, e in ((0, 0), (90, 10), (180, -10), (270, 0), (45, 80))])
-    grid, _ = visual_hull_grid(frames, resolution=64, extent=0.7, tolerate=0)
+    grid = visual_hull_grid(frames, resolution=64, extent=0.7, tolerate=0)
     for f in frames:
         assert silhouette_scores(silhouette(grid, f)[0], f.mask > 0.5)["iou"] > 0.95
     for cam in (camera(45, 30), camera(135, -40)):
@@ -84,7 +106,7 @@ def test_hull_keeps_parts_thinner_than_its_first_pass_cells():
         return (p.norm(dim=-1) < 0.12) | stick
 
     frames = frames_of(lollipop, [camera(a, e, distance=1.5) for a, e in ((30, 20), (120, 10), (210, 25), (300, 15))])
-    grid, _ = visual_hull_grid(frames, resolution=64, extent=1.0, tolerate=0)
+    grid = visual_hull_grid(frames, resolution=64, extent=1.0, tolerate=0)
     assert grid.hi[0] > 0.45
     for f in frames:
         assert silhouette_scores(silhouette(grid, f)[0], f.mask > 0.5)["missed"] < 0.01
@@ -92,15 +114,14 @@ def test_hull_keeps_parts_thinner_than_its_first_pass_cells():
 
 def test_a_kept_hull_is_the_same_hull_and_a_copy(mug_hull):
     side, grid = mug_hull
-    again, colours = visual_hull_grid(side, resolution=64, extent=0.7, tolerate=0)
+    again = visual_hull_grid(side, resolution=64, extent=0.7, tolerate=0)
     assert torch.equal(again.occ, grid.occ) and torch.equal(again.lo, grid.lo)
     again.occ.zero_()
-    colours.zero_()
-    third, colours3 = visual_hull_grid(side, resolution=64, extent=0.7, tolerate=0)
-    assert torch.equal(third.occ, grid.occ) and colours3.abs().sum() > 0  # the caller's change stays its own
+    third = visual_hull_grid(side, resolution=64, extent=0.7, tolerate=0)
+    assert torch.equal(third.occ, grid.occ)  # the caller's change stays its own
     cut = [Frame(f.K, f.viewmat, f.width, f.height, name=f.name, image=f.image, mask=f.mask.clone()) for f in side]
     cut[0].mask[:, : SIZE // 2] = 0.0  # another mask is another hull
-    assert visual_hull_grid(cut, resolution=64, extent=0.7, tolerate=0)[0].occ.sum() < grid.occ.sum()
+    assert visual_hull_grid(cut, resolution=64, extent=0.7, tolerate=0).occ.sum() < grid.occ.sum()
 
 
 def test_silhouette_scores_exact():
@@ -282,7 +303,7 @@ def test_a_volume_model_that_hurts_the_leave_one_out_silhouettes_is_left_out(mon
     import wgs.shape.carve as carving
 
     views = frames_of(mug, [camera(a, e) for a, e in ((0, 0), (100, 10), (210, -10), (300, 40))])
-    grid, _ = visual_hull_grid(views, resolution=48, extent=0.7, tolerate=0)
+    grid = visual_hull_grid(views, resolution=48, extent=0.7, tolerate=0)
     for cuts_half in (True, False):  # a V that calls the half y > 0 background / one that keeps everything
         def prob(model, frames, g, cuts_half=cuts_half):
             pts = g.centres()[g.occ.reshape(-1)]

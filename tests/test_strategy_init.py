@@ -123,6 +123,20 @@ def test_visual_hull_of_sphere_lies_inside_its_hull_bound():
     assert r.max() < 0.3 / math.cos(math.pi / 4) * 1.15 + voxel
 
 
+def test_hull_points_take_the_mean_colour_of_the_views_whose_masks_hold_them():
+    frames = sphere_frames()
+    gen = lambda: torch.Generator().manual_seed(0)  # noqa: E731
+    for f in frames:
+        f.image = torch.full_like(f.image, 0.3)
+    pts, cols = visual_hull(frames, resolution=32, extent=0.6, max_points=300, generator=gen())
+    assert pts.shape == (300, 3)
+    torch.testing.assert_close(cols, torch.full_like(cols, 0.3))
+    for i, f in enumerate(frames):  # view i all one grey, i / 10: a mean of some of them
+        f.image = torch.full_like(f.image, i / 10)
+    again, cols = visual_hull(frames, resolution=32, extent=0.6, max_points=300, generator=gen())
+    assert torch.equal(again, pts) and cols.min() >= 0.0 and cols.max() <= 0.3 + 1e-6 and cols.std() > 0
+
+
 def test_empty_hull_is_a_clear_error():
     frames = sphere_frames()
     for f in frames:

@@ -489,6 +489,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--prepared", help="contention: a workspace after `wgs prepare`")
     ap.add_argument("--stage", default="coarse", choices=["coarse", "fine"], help="iteration: whose training loop")
     ap.add_argument("--workspace", help="iteration --stage fine: a workspace after `wgs repair`")
+    ap.add_argument("--start", type=int, default=None,
+                    help="iteration: the profiled window's first iteration (default: the middle of the stage)")
     ap.add_argument("--iterations", type=int, default=300, help="contention: coarse iterations per run")
     ap.add_argument("--variants", default=",".join(CONTENTION_VARIANTS), help="contention: thread settings")
     ap.add_argument("--matcher", default="auto", help="sfm: auto, exhaustive or sequential")
@@ -502,7 +504,8 @@ def main(argv: list[str] | None = None) -> None:
         if a.stage == "coarse" and not Path(a.scene).is_dir():
             print(f"scene {a.scene} not found: skipped")
             return
-        json.dump(bench_iteration(a.scene, a.root, a.views, a.downscale, stage=a.stage, workspace=a.workspace),
+        json.dump(bench_iteration(a.scene, a.root, a.views, a.downscale, stage=a.stage, workspace=a.workspace,
+                                  start=a.start),
                   sys.stdout, indent=2)
         print()
         return

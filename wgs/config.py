@@ -310,12 +310,12 @@ _FAST_TRAIN = {"refine_start": 100, "refine_every": 50, "sh_degree": 1, "sh_incr
 
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "fast": {
-        "coarse": {**_FAST_TRAIN, "iterations": 400, "refine_stop": 300, "ensemble": 2},
-        "mask_data": {**_FAST_TRAIN, "iterations": 300, "refine_stop": 250, "warmup": 100, "pair_every": 40,
+        "coarse": {**_FAST_TRAIN, "iterations": 400, "refine_stop": 300, "ensemble": 1},
+        "mask_data": {**_FAST_TRAIN, "iterations": 200, "refine_stop": 150, "warmup": 60, "pair_every": 28,
                       "drift_period": 100.0},
-        "finetune": {"d_steps": 300, "u_max_steps": 300, "d_channels": 16, "u_eval_every": 25, "prior_steps": 100},
+        "finetune": {"d_steps": 300, "u_max_steps": 100, "d_channels": 16, "u_eval_every": 25, "prior_steps": 25},
         "repair": {"steps": 5, "num_views": 16, "band_above": 25.0},
-        "fine": {**_FAST_TRAIN, "iterations": 300, "refine_start": 50, "refine_stop": 200},
+        "fine": {**_FAST_TRAIN, "iterations": 300, "refine_start": 50, "refine_stop": 200, "pseudo_every": 2},
     },
     "default": {},
     "paper": {

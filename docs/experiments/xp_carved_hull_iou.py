@@ -36,7 +36,7 @@ if __name__ == "__main__":
     for name in OBJECTS:
         ws = Workspace(root / name / s_tag)
         scene = load_prepared(ws.output("scene", "prepared"), load_test_images=True)
-        strict, _ = visual_hull_grid(scene.train, 96, tolerate=0)
+        strict = visual_hull_grid(scene.train, 96, tolerate=0)
         by_s = load_grid(ws.output("repair", "carved_hull"))
         prob = occupied_probability(model, scene.train, strict)
         row = {"strict hull": mean_iou(strict, scene.test), "S": mean_iou(by_s, scene.test)}

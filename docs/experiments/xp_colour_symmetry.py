@@ -19,7 +19,7 @@ if not scene.info.get("mirror", {}).get("used"):
     raise SystemExit("the scene's mirror check did not pass: no plane")
 plane = MirrorPlane.from_json(scene.info["mirror"]["plane"])
 photos = scene.photos
-grid, _ = visual_hull_grid(scene.train, 96, tolerate=0)
+grid = visual_hull_grid(scene.train, 96, tolerate=0)
 depths = [silhouette(grid, f)[1] for f in photos]
 cell = float(grid.cell.max())
 

@@ -30,7 +30,7 @@ def oracle_predictor(ws: Path, make_models):
             return None
         full = load_prepared(ws / "scene", load_test_images=True)
         frames = full.train + [f for f in full.test if f.mask is not None]
-        every_mask, _ = visual_hull_grid(frames, ORACLE_RESOLUTION, tolerate=0)
+        every_mask = visual_hull_grid(frames, ORACLE_RESOLUTION, tolerate=0)
         print(f"oracle: the hull of {len(frames)} true masks stands in for S", flush=True)
 
         class Oracle(repair.ShapeModels):

@@ -5,31 +5,28 @@ from __future__ import annotations
 
 import torch
 
-from ..shape.hull import HullGrid, surface, visual_hull_grid
+from ..shape.hull import HullGrid, mask_votes, surface, visual_hull_grid
 
 
 def visual_hull(frames, resolution: int = 96, extent: float = 1.0, max_points: int = 20000,
                 near: float = 0.01, generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """Initial points from the training masks' visual hull (`shape.hull.visual_hull_grid`): the
-    hull's surface voxels (the renders see surfaces), jittered within their voxel, coloured by the
-    mean colour of the views that see them, at most `max_points` of them.
-
-    Returns points [M, 3] and colours [M, 3]; raises InputError if the hull is empty.
-    """
-    grid, colours = visual_hull_grid(frames, resolution, extent, near)
-    return hull_points(grid, colours, max_points, generator)
+    """Initial points from the training masks' visual hull (`shape.hull.visual_hull_grid`, then
+    `hull_points`). Returns points [M, 3] and colours [M, 3]; raises InputError if the hull is empty."""
+    return hull_points(visual_hull_grid(frames, resolution, extent, near), frames, max_points, generator, near)
 
 
-def hull_points(grid: HullGrid, colours: torch.Tensor, max_points: int, generator: torch.Generator | None = None
-                ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Points [M, 3] and colours [M, 3] on the surface of an occupancy grid (colours [R³, 3] per voxel)."""
+def hull_points(grid: HullGrid, frames, max_points: int, generator: torch.Generator | None = None,
+                near: float = 0.01) -> tuple[torch.Tensor, torch.Tensor]:
+    """Points [M, 3] on the surface of an occupancy grid (the renders see surfaces), jittered within
+    their voxel, at most `max_points` of them, and their colours [M, 3]: the mean colour of the
+    frames whose masks hold their voxel's centre."""
     keep = surface(grid)
-    pts, cols = grid.centres()[keep], colours[keep]
-    pts = pts + (torch.rand(pts.shape, generator=generator) - 0.5) * grid.cell
+    centres = grid.centres()[keep]
+    pts = centres + (torch.rand(centres.shape, generator=generator) - 0.5) * grid.cell
     if pts.shape[0] > max_points:
         pick = torch.randperm(pts.shape[0], generator=generator)[:max_points]
-        pts, cols = pts[pick], cols[pick]
-    return pts, cols
+        centres, pts = centres[pick], pts[pick]
+    return pts, mask_votes(frames, centres, near)[1]
 
 
 def random_init(n: int, radius: float = 0.5, generator: torch.Generator | None = None

@@ -50,7 +50,7 @@ def object_pairs(scene_dir: Path, work: Path, views: int, coarse_overrides: dict
     splats, _ = load_checkpoint(ws.output("coarse", "model"), scene.norm)
     bg = torch.ones(3)
     centres = torch.stack([f.center for f in scene.train])
-    grid, _ = visual_hull_grid(scene.train, resolution=96, tolerate=0)
+    grid = visual_hull_grid(scene.train, resolution=96, tolerate=0)
     out: dict[str, list] = {"render": [], "ref": [], "render_alpha": [], "ref_alpha": [], "distance": [],
                             "hull": [], "hull_depth": []}
     for f in scene.test:

@@ -56,7 +56,7 @@ def object_volume_pairs(scene_dir: Path, work: Path, subsets: int, resolution: i
     for sub in view_subsets(centers, forwards, subsets, rng):
         frames = [scene.train[j] for j in sub]
         try:
-            grid, _ = visual_hull_grid(frames, BOX_RESOLUTION, tolerate=0)
+            grid = visual_hull_grid(frames, BOX_RESOLUTION, tolerate=0)
         except InputError:  # these views share no region (a thin object seen edge-on)
             continue
         box = cube_around(grid, resolution)

@@ -116,7 +116,7 @@ def mask_votes(frames, points: torch.Tensor, near: float = 0.01) -> tuple[torch.
     return votes, col_sum / votes.clamp_min(1)[:, None].float()
 
 
-def hull_votes(frames, points: torch.Tensor, need: int, near: float = 0.01) -> torch.Tensor:
+def hull_votes_torch(frames, points: torch.Tensor, need: int, near: float = 0.01) -> torch.Tensor:
     """In how many frames' masks each point [N, 3] falls: [N] int, exact for every point that reaches
     `need`. A point that has missed more masks than `need` allows is not looked up again (its count
     stays under need), so each view projects only what is still in the running."""
@@ -132,33 +132,50 @@ def hull_votes(frames, points: torch.Tensor, need: int, near: float = 0.01) -> t
     return votes
 
 
+def hull_votes(frames, points: torch.Tensor, need: int, near: float = 0.01) -> torch.Tensor:
+    """`hull_votes_torch` on the CPU numba kernel (`votes_numba`): one pass over the points, each
+    projected into one view after another until it has missed too many masks."""
+    from .votes_numba import hull_votes as kernel
+
+    sizes = [f.width * f.height for f in frames]
+    offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+    masks = np.concatenate([(f.mask.reshape(-1) > 0.5).to(torch.uint8).cpu().numpy() for f in frames])
+    votes = kernel(points.detach().to("cpu", torch.float32).contiguous().numpy(),
+                   np.stack([f.viewmat.detach().cpu().float().numpy() for f in frames]),
+                   np.stack([f.K.detach().cpu().float().numpy() for f in frames]), masks, offsets,
+                   np.array([f.width for f in frames], np.int64), np.array([f.height for f in frames], np.int64),
+                   int(need), np.float32(near))
+    return torch.from_numpy(votes)
+
+
 def default_tolerance(num_views: int) -> int:
     """Masks a hull voxel may fall outside of: one with 3 or more views (a bad mask then cannot cut
     the object, GaussianObject's rule), else none."""
     return 1 if num_views >= 3 else 0
 
 
-# The stages of one run (coarse init, repair, fine init, eval's scores) ask for the same few hulls;
-# each projects R³ voxel centres into every view, so a process keeps the last few by content.
-HULLS_KEPT = 8
-_hulls: OrderedDict[bytes, tuple[HullGrid, torch.Tensor]] = OrderedDict()
+# The stages of one run (coarse init, repair, fine init, eval's scores, the leave-one-out checks: a
+# hull per training view) ask for the same hulls again; each projects R³ voxel centres into every
+# view, so a process keeps the last few by content.
+HULLS_KEPT = 32
+_hulls: OrderedDict[bytes, HullGrid] = OrderedDict()
 
 
 def _hull_key(frames, resolution: int, extent: float, near: float, tolerate: int) -> bytes:
-    """Digest of everything a hull depends on: the frames' cameras, masks and colours, and the grid."""
+    """Digest of everything a hull depends on: the frames' cameras and masks, and the grid."""
     h = hashlib.blake2b(np.array([resolution, extent, near, tolerate], np.float64).tobytes(), digest_size=20)
     for f in frames:
         h.update(np.array([f.width, f.height], np.int64).tobytes())
-        for t in (f.viewmat, f.K, f.mask, f.image):
+        for t in (f.viewmat, f.K, f.mask):
             h.update(t.detach().to("cpu", torch.float32).contiguous().numpy().tobytes())
     return h.digest()
 
 
 def visual_hull_grid(frames, resolution: int = 96, extent: float = 1.0, near: float = 0.01,
-                     tolerate: int | None = None) -> tuple[HullGrid, torch.Tensor]:
+                     tolerate: int | None = None) -> HullGrid:
     """The hull of the frames' masks over [-extent, extent]³: a 32³ pass finds its bounding box, a
-    second carves that box at `resolution`. Returns the grid and the occupied voxels' mean colours
-    [R³, 3] (0 elsewhere; copies: callers may change them); raises InputError when it is empty."""
+    second carves that box at `resolution`. Returns a copy (callers may change it); raises
+    InputError when it is empty."""
     tolerate = default_tolerance(len(frames)) if tolerate is None else tolerate
     key = _hull_key(frames, resolution, extent, near, tolerate)
     if key not in _hulls:
@@ -166,8 +183,8 @@ def visual_hull_grid(frames, resolution: int = 96, extent: float = 1.0, near: fl
         while len(_hulls) > HULLS_KEPT:
             _hulls.popitem(last=False)
     _hulls.move_to_end(key)
-    grid, colours = _hulls[key]
-    return HullGrid(grid.lo.clone(), grid.hi.clone(), grid.occ.clone()), colours.clone()
+    grid = _hulls[key]
+    return HullGrid(grid.lo.clone(), grid.hi.clone(), grid.occ.clone())
 
 
 BOX_GROWTH_STEPS = 6  # each step grows a touched side by half the box
@@ -211,16 +228,13 @@ def kept_box(votes_at, need: int, resolution: int, extent: float = 1.0):
     return lo, hi, result
 
 
-def _build_hull(frames, resolution: int, extent: float, near: float, tolerate: int) -> tuple[HullGrid, torch.Tensor]:
+def _build_hull(frames, resolution: int, extent: float, near: float, tolerate: int) -> HullGrid:
     need = len(frames) - tolerate
     lo, hi, (votes,) = kept_box(lambda pts: (hull_votes(frames, pts, need, near),), need, resolution, extent)
     occ = (votes >= need).reshape(resolution, resolution, resolution)
     if not occ.any():
         raise InputError(EMPTY_HULL)
-    colours = torch.zeros(resolution ** 3, 3)  # only the occupied voxels' are ever used
-    kept = occ.reshape(-1)
-    colours[kept] = mask_votes(frames, grid_centres(lo, hi, resolution)[kept], near)[1]
-    return HullGrid(lo, hi, occ), colours
+    return HullGrid(lo, hi, occ)
 
 
 def surface(grid: HullGrid) -> torch.Tensor:

@@ -43,7 +43,7 @@ def leave_one_out(frames, resolution: int = 96, extent: float = 1.0, tolerate: i
     out = {}
     for i, f in enumerate(frames):
         others = frames[:i] + frames[i + 1:]
-        grid, _ = visual_hull_grid(others, resolution, extent, tolerate=tolerate)
+        grid = visual_hull_grid(others, resolution, extent, tolerate=tolerate)
         if carve is not None:
             grid = carve(grid, others)
         cover, _ = silhouette(grid, f)

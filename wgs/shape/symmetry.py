@@ -107,7 +107,7 @@ def hemisphere_directions(n: int) -> torch.Tensor:
 
 def leave_one_out_views(frames, resolution: int, stride: int) -> list[RayVoxels]:
     """For each frame, the hull of the other frames' masks and its rays at that frame's camera."""
-    return [RayVoxels(visual_hull_grid(frames[:i] + frames[i + 1:], resolution, tolerate=0)[0], f, stride)
+    return [RayVoxels(visual_hull_grid(frames[:i] + frames[i + 1:], resolution, tolerate=0), f, stride)
             for i, f in enumerate(frames)]
 
 
@@ -137,7 +137,7 @@ def find_mirror(frames, directions: int) -> tuple[MirrorPlane, float, float]:
     leave-one-out IoU of the hulls alone, of the hulls intersected with their reflections), both
     measured at the refinement's resolution."""
     coarse = leave_one_out_views(frames, *SEARCH)
-    whole, _ = visual_hull_grid(frames, SEARCH[0], tolerate=0)
+    whole = visual_hull_grid(frames, SEARCH[0], tolerate=0)
     centroid = whole.centres()[whole.occ.reshape(-1)].mean(0)
     size = float((whole.hi - whole.lo).max())
     dirs = hemisphere_directions(directions)
@@ -164,7 +164,7 @@ def mirror_check(frames, min_gain: float, max_missed: float, directions: int) ->
     follows cuts it). A record: plane, both IoUs, the missed share, used, seconds."""
     t0 = time.perf_counter()
     plane, before, after = find_mirror(frames, directions)
-    both, _ = visual_hull_grid(frames + [mirror_frame(f, plane) for f in frames], REFINE[0], tolerate=0)
+    both = visual_hull_grid(frames + [mirror_frame(f, plane) for f in frames], REFINE[0], tolerate=0)
     missed = sum(silhouette_scores(silhouette(both, f)[0], f.mask > 0.5)["missed"] for f in frames) / len(frames)
     return {"plane": plane.to_json(), "leave_one_out_iou": round(before, 4),
             "leave_one_out_iou_mirrored": round(after, 4), "missed": round(missed, 4),

@@ -94,7 +94,7 @@ def shape_models(scene, cfg: RepairConfig, device: torch.device) -> ShapeModels 
         log("repair: no shipped silhouette or volume model -> no carving")
         return None
     try:
-        grid, _ = visual_hull_grid(scene.train, cfg.hull_resolution, tolerate=0)
+        grid = visual_hull_grid(scene.train, cfg.hull_resolution, tolerate=0)
     except InputError:  # the training starts from the hull that tolerates one mask; carving needs them all
         log("repair: the training masks share no region (every mask agreeing) -> no carving")
         return None

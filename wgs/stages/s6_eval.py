@@ -133,7 +133,7 @@ def shape_reference(scene, frames: list[Frame], resolution: int, carved: HullGri
     if not scene.has_masks:
         return None
     try:
-        grid, _ = visual_hull_grid(scene.train, resolution, tolerate=0)
+        grid = visual_hull_grid(scene.train, resolution, tolerate=0)
         loo = leave_one_out(scene.photos, resolution) if len(scene.photos) >= 2 else {}
     except InputError:
         log("eval: the training masks share no region (every mask agreeing) -> no visual-hull scores")

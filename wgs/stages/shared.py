@@ -17,7 +17,7 @@ from ..gaussians.trainer import render_frame
 from ..models.repair import Repairer, load_repairer, repair_image, symmetrized
 from ..progress import log
 from ..scene.dataset import Frame, PreparedScene
-from ..shape.hull import HullGrid, mask_votes
+from ..shape.hull import HullGrid
 from ..wavelet.haar import dwt2
 
 
@@ -26,7 +26,7 @@ def initial_splats(scene: PreparedScene, cfg: TrainConfig, seed: int, hull: Hull
     points in the object region."""
     gen = torch.Generator().manual_seed(seed)
     if hull is not None:
-        pts, cols = hull_points(hull, mask_votes(scene.train, hull.centres())[1], cfg.init_points, gen)
+        pts, cols = hull_points(hull, scene.train, cfg.init_points, gen)
     elif scene.has_masks:
         try:
             pts, cols = visual_hull(scene.train, cfg.hull_resolution, 1.0, cfg.init_points, generator=gen)
