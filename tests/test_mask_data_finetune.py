@@ -9,6 +9,7 @@ from click.testing import CliRunner
 from wgs.cli import cli
 from wgs.io.exr import read_subbands
 from wgs.models.storage import load_model
+from wgs.prior import WEIGHTS as PRIOR_WEIGHTS
 from wgs.scene.dataset import load_prepared
 from wgs.stages.shared import subband_file
 from wgs.workspace import Workspace
@@ -75,7 +76,7 @@ def test_finetune_trains_and_saves_d_and_u(coarse_ws, tmp_path):
     ws = copy_ws(coarse_ws, tmp_path / "ws")
     mask_data(ws, tmp_path)
     cfg = tmp_path / "finetune.toml"
-    # a short fine-tune of the prior: the fast preset's 100 steps test nothing more here
+    # a short fine-tune of the prior, evaluated three times
     cfg.write_text("[finetune]\nprior_steps = 12\nprior_eval_every = 4\n")
     invoke("--config", str(cfg), "-w", str(ws.root), "finetune", "--preset", "fast", "--d-steps", "30",
            "--u-max-steps", "30")
@@ -95,6 +96,13 @@ def test_finetune_trains_and_saves_d_and_u(coarse_ws, tmp_path):
         load_model(d / "U")
     for k in ("l1_before", "l1_after", "psnr_before", "psnr_after"):
         assert torch.isfinite(torch.tensor(m["heldout"][k]))
+    # no fine-tune steps: D is the prior as shipped, its held-out error the curve's one point
+    invoke("-w", str(ws.root), "finetune", "--preset", "fast", "--prior-steps", "0", "--u-max-steps", "10")
+    shipped = load_model(PRIOR_WEIGHTS / "D")[0].state_dict()
+    assert all(torch.equal(v, shipped[k]) for k, v in load_model(d / "D")[0].state_dict().items())
+    curves = json.loads((d / "curves.json").read_text())
+    assert curves["D"]["step"] == [] and curves["D"]["stopped_at"] == 0 and curves["D"]["bar"] > 0
+    assert ws.manifest("finetune")["d_stopped_at"] == 0 and (d / "curves.png").stat().st_size > 1000
     # --prior none: the from-scratch denoising D (SDEdit at repair time), its own width
     invoke("-w", str(ws.root), "finetune", "--preset", "fast", "--d-steps", "10", "--u-max-steps", "10",
            "--prior", "none")

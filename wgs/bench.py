@@ -385,6 +385,7 @@ def bench_iteration(scene: str, root: str, views: int, downscale: int, window: i
     total = cfg.iterations
     start = total // 2 if start is None else start
     cfg.iterations = start + window
+    cfg.half_size_until = min(1.0, cfg.half_size_until * total / cfg.iterations)  # the phase ends where it would
     prof = profile(activities=[ProfilerActivity.CPU])
     marks: dict[str, float] = {}
     sizes: list[int] = []
@@ -415,6 +416,7 @@ def bench_iteration(scene: str, root: str, views: int, downscale: int, window: i
     return {"benchmark": "iteration", "stage": stage, "scene": workspace if stage == "fine" else scene,
             "size": [img.width, img.height], "views": len(prepared.train),
             "iterations": f"{start + 1}..{start + window} of {total}",
+            "half_size_through": int(cfg.half_size_until * cfg.iterations),
             "gaussians": [min(sizes), max(sizes)], "ms_per_iteration_profiled": round(wall_ms, 3),
             "phases_ms": rows, "inside_ms": inner, "threads": torch.get_num_threads(),
             "machine": {"platform": platform.platform(), "cpus": os.cpu_count()}}

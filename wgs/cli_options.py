@@ -53,6 +53,7 @@ MEANING: dict[str, str] = {
     "sd_model": "Local Stable Diffusion 1.5 folder.",
     "controlnet": "Local ControlNet-tile folder.",
     "u_max_steps": "Step limit of U (early stopping ends it sooner).",
+    "prior_steps": "Fine-tune steps of the prior's D on this object's pairs (0: the prior as shipped).",
     "prior": "Start D and U from the pretrained repair prior (builtin), train them from scratch (none), "
              "or from a prior folder with D/ and U/.",
     # repair

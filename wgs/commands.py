@@ -59,7 +59,7 @@ def register(cli, stage_common, workspace_option) -> None:
 
     @cli.command()
     @config_options("finetune", "domain", "use_u", "levels", "d_steps", "diffusion", "sd_model", "controlnet",
-                    "u_max_steps", "prior")
+                    "u_max_steps", "prior_steps", "prior")
     @stage_common
     @click.pass_obj
     def finetune(obj, force, preset, **options):

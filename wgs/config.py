@@ -136,7 +136,7 @@ class FinetuneConfig:
     lora_crop: int = 64
     use_u: bool = True
     prior: str = "builtin"  # builtin: the prior shipped in wgs/prior/weights; none: from scratch; or a folder
-    prior_steps: int = 150  # per-object fine-tune of the prior D (early-stopped on held-out pairs)
+    prior_steps: int = 150  # per-object fine-tune of the prior D (early-stopped on held-out pairs); 0: as shipped
     prior_lr: float = 5e-5
     prior_eval_every: int = 25
     prior_patience: int = 4
@@ -417,7 +417,7 @@ RANGES: dict[str, tuple[float, float | None]] = {"views": (2, None), "downscale"
                                                  "repair_gain_views": (0, None), "mask_agreement": (0.0, 1.0),
                                                  "mask_max_cut": (0.0, 1.0), "mirror_directions": (1, None),
                                                  "mirror_max_missed": (0.0, 1.0), "outline_margin_px": (0, None),
-                                                 "half_size_until": (0.0, 1.0)}
+                                                 "half_size_until": (0.0, 1.0), "prior_steps": (0, None)}
 
 
 def check_choices(cfg: Any) -> None:

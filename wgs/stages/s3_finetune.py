@@ -180,7 +180,7 @@ def plot_curves(path, curves: dict[str, Any]) -> None:
 
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.2))
     d = curves["D"]
-    if d["val"]:  # a fine-tuned prior: its held-out error, step 0 = the prior as shipped
+    if d["bar"] is not None:  # a fine-tuned prior: its held-out error, step 0 = the prior as shipped
         axes[0].plot([0] + d["step"], [d["bar"]] + d["val"], label="held-out")
         axes[0].set(title="D from the prior (held-out MSE)", xlabel="step")
     else:

@@ -164,6 +164,8 @@ def fit(model: torch.nn.Module, opt: torch.optim.Optimizer, batch_loss: Callable
                 on_record(st)
         if after_step is not None and not st.finished:
             after_step(step, snapshot)
+    if plan.steps == 0:  # nothing to train: the starting weights are the result
+        st.stopped_at = 0
     st.seconds += time.perf_counter() - t0
     if plan.keep_best:
         judged.load_state_dict(best_state)
