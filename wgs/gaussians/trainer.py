@@ -7,7 +7,8 @@ A view whose image does not show the object's colours (`Frame.shows_colour`) tea
 object is not: L = outline_weight · mean(alpha outside its mask grown by outline_margin_px). It
 never asks for matter, so where it and the photos disagree (a mirror plane a little off, an object
 a little asymmetric) the photos decide. The first `half_size_until` of the schedule sees every view
-at half size (`scene.dataset.halved`): those iterations fit the coarse shape at a third of the cost.
+at half size (`scene.dataset.halved`): those iterations fit the coarse shape at about half the cost
+of a full-size one (docs/speed.md).
 """
 
 from __future__ import annotations
