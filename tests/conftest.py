@@ -76,6 +76,11 @@ turntable_frames = 8
 hull_resolution = 32
 """
 
+# TINY with one coarse model: for tests of what runs the pipeline (batch, ablate), where a second
+# model only adds the start-up of the processes that train the ensemble side by side
+TINY_ONE_MODEL = TINY.replace("ensemble = 2", "ensemble = 1")
+assert TINY_ONE_MODEL != TINY
+
 from make_scene import make_scene  # noqa: E402
 
 from wgs.io.images import read_image, write_png  # noqa: E402

@@ -6,7 +6,7 @@ import math
 
 import pytest
 from click.testing import CliRunner
-from conftest import TINY, make_scene
+from conftest import TINY_ONE_MODEL, make_scene
 
 from wgs.ablation import ROWS, pareto, parse_rows
 from wgs.cli import cli
@@ -17,7 +17,7 @@ from wgs.workspace import Workspace
 def test_ablate_all_rows(tmp_path):
     scene = make_scene(tmp_path / "scene", seed=5, size=64, n_train=4, n_test=3)
     cfg = tmp_path / "wgs.toml"
-    cfg.write_text(TINY)
+    cfg.write_text(TINY_ONE_MODEL)
     root = tmp_path / "abl"
     res = CliRunner().invoke(cli, ["-q", "--config", str(cfg), "-w", str(root), "ablate", str(scene), "--rows", "all"],
                              catch_exceptions=False)

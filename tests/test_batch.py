@@ -11,7 +11,7 @@ from pathlib import Path
 
 import click
 import pytest
-from conftest import TINY, expect_error, make_scene, run_cli
+from conftest import TINY_ONE_MODEL, expect_error, make_scene, run_cli
 
 from wgs.batch import SceneTask, read_scene_list, shard, shard_from_env
 from wgs.cli import cli
@@ -26,7 +26,7 @@ def scenes(tmp_path_factory):
     for i, name in enumerate(["apple", "broken", "cube"]):
         make_scene(base / "data" / name, seed=10 + i, size=48, n_train=4, n_test=3)
     (base / "data" / "broken" / "transforms_train.json").write_text("{ not json")
-    (base / "wgs.toml").write_text(TINY)
+    (base / "wgs.toml").write_text(TINY_ONE_MODEL)
     (base / "scenes.txt").write_text("# three objects\ndata/apple --views 4\ndata/broken\n\ndata/cube  # the last\n")
     return base
 

@@ -19,7 +19,7 @@ def test_the_fine_iteration_is_profiled_with_its_pseudo_view(finished_workspace,
     # the phases and the rest add up to the measured iteration
     assert sum(phases.values()) == pytest.approx(res["ms_per_iteration_profiled"], abs=0.01)
     assert res["stage"] == "fine" and res["iterations"] == f"6..9 of {resolve('fine').iterations}"
-    assert res["half_size_through"] == 0  # G_f trains at full size
+    assert res["half_size_through"] == 9  # G_f's early iterations train at half size, as the coarse ones do
 
 
 def test_a_window_in_the_half_size_phase_keeps_the_phase(blender_scene, tmp_path):

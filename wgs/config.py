@@ -75,7 +75,7 @@ class TrainConfig(DensifyParams):
     outline_weight: float = 1.0
     outline_margin_px: int = 1
     # the views at half size (2x2 pixel means) for this fraction of the schedule: the early
-    # iterations, which fit the coarse shape, cost about a third as much
+    # iterations, which fit the coarse shape, cost about half as much
     half_size_until: float = 0.0
     random_background: bool = True
     init_points: int = 5000  # visual-hull points at most
@@ -202,6 +202,7 @@ class FineConfig(LpipsWeightsConfig, CurveConfig, TrainConfig):
     iterations: int = 1500
     refine_start: int = 100
     refine_stop: int = 1000
+    half_size_until: float = 0.3  # real and pseudo views halved, as in the coarse stage
     # where G_f starts: "hull" trains afresh from the visual-hull init on the real and pseudo views
     # together (G_c's 4-view artifacts are not dragged along), "coarse" refines G_c, "auto" is hull
     # when the scene has masks (else there is no hull to start from)
@@ -209,7 +210,7 @@ class FineConfig(LpipsWeightsConfig, CurveConfig, TrainConfig):
     pseudo_weight_start: float = 1.0  # a pseudo view's weight against a real view's at the start
     pseudo_weight_end: float = 1.0  # reached at pseudo_until of the iterations; 0 after (real views only)
     pseudo_until: float = 1.0  # fraction of the iterations with pseudo views (GaussianObject: 0.7)
-    pseudo_every: int = 1  # one pseudo-view step every k iterations
+    pseudo_every: int = 2  # one pseudo-view step every k iterations
     lpips_weight: float = 0.1  # LPIPS (VGG) on the pseudo views, used when its weights are on this machine
     rounds: int = 1  # > 1: the pseudo views are rendered from the refined model, repaired again, trained again
 
@@ -313,7 +314,8 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
         "coarse": {**_FAST_TRAIN, "iterations": 400, "refine_stop": 300, "ensemble": 1},
         "mask_data": {**_FAST_TRAIN, "iterations": 200, "refine_stop": 150, "warmup": 60, "pair_every": 28,
                       "drift_period": 100.0},
-        "finetune": {"d_steps": 300, "u_max_steps": 100, "d_channels": 16, "u_eval_every": 25, "prior_steps": 25},
+        "finetune": {"d_steps": 300, "u_max_steps": 100, "d_channels": 16, "u_eval_every": 25, "u_patience": 2,
+                     "prior_steps": 25},
         "repair": {"steps": 5, "num_views": 16, "band_above": 25.0},
         "fine": {**_FAST_TRAIN, "iterations": 300, "refine_start": 50, "refine_stop": 200, "pseudo_every": 2},
     },

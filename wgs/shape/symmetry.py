@@ -25,7 +25,7 @@ from ..scene.mirror import MirrorPlane, mirror_frame, reflect
 from .hull import HullGrid, box_rays, march, silhouette, visual_hull_grid
 from .scores import silhouette_scores
 
-SEARCH = (48, 2)  # (leave-one-out hull resolution, pixel stride) of the search over all directions
+SEARCH = (48, 3)  # (leave-one-out hull resolution, pixel stride) of the search over all directions
 REFINE = (64, 1)  # ... and of the refinement around the best plane
 OFFSETS = 7  # plane offsets tried per direction, over +-OFFSET_SPAN of the hull box around its centroid
 OFFSET_SPAN = 0.15
