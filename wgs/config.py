@@ -317,7 +317,7 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
         "finetune": {"d_steps": 300, "u_max_steps": 100, "d_channels": 16, "u_eval_every": 25, "u_patience": 2,
                      "prior_steps": 15},
         "repair": {"steps": 5, "num_views": 16, "band_above": 25.0},
-        "fine": {**_FAST_TRAIN, "iterations": 300, "refine_start": 50, "refine_stop": 200, "pseudo_every": 2},
+        "fine": {**_FAST_TRAIN, "iterations": 300, "refine_start": 50, "refine_stop": 200},
     },
     "default": {},
     "paper": {
