@@ -15,7 +15,7 @@ from wgs.cli import cli
 from wgs.io.images import read_image, write_png
 from wgs.scene.dataset import load_prepared
 from wgs.segment import saliency
-from wgs.segment.agreement import supported
+from wgs.segment.agreement import supported, voting_views
 from wgs.segment.refine import clean, guided_filter
 from wgs.workspace import Workspace
 
@@ -167,6 +167,37 @@ def test_views_that_disagree_on_the_object_leave_the_scene_without_masks(room_sc
     assert not Workspace(tmp_path / "ws").output("scene", "prepared", "masks").exists()
 
 
+def test_a_training_mask_that_misses_part_of_the_object_leaves_the_scene_without_masks(room_scene, tmp_path,
+                                                                                       monkeypatch):
+    """The network finds the true object everywhere but in the first photo, where it misses the
+    upper half: the vote tolerates one such dissenter, but the training masks' hull would cut that
+    half from every view, so the scene goes on without masks and says why."""
+    truths = [read_image(room_scene / "true_masks" / f"r_{i}_{split}.png")[..., 0]
+              for split, n in (("train", 4), ("test", 8)) for i in range(n)]  # the order prepare reads them
+    calls = iter(range(len(truths)))
+
+    def network(self, rgb):
+        k = next(calls)
+        p = truths[k].astype(np.float32)
+        assert p.shape == rgb.shape[:2]
+        if k == 0:
+            rows = np.nonzero(p.any(1))[0]
+            p[: (rows.min() + rows.max()) // 2] = 0.0
+        return p
+
+    monkeypatch.setattr(saliency.SaliencyNet, "__call__", network)
+    res = CliRunner().invoke(cli, ["-w", str(tmp_path / "ws"), "prepare", str(room_scene), "--mirror", "none"],
+                             catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    info = Workspace(tmp_path / "ws").manifest("scene")["summary"]["masks"]
+    missed = info["training_hull_missed"]
+    assert missed[0] < 0.05 < max(missed[1:]), missed  # the half mask cuts the others' masks, not its own
+    worst = f"train_r_{int(np.argmax(missed))}.png"
+    assert info["source"] == "none" and info["auto_failed"].startswith("the training masks disagree"), info
+    assert worst in info["auto_failed"]
+    assert "masks: none (the training masks disagree" in " ".join(res.output.split())
+
+
 def test_a_view_whose_mask_is_all_wrong_takes_what_the_others_call_object(blender_scene, tmp_path):
     scene = load_prepared(prepare(blender_scene, tmp_path / "ws").output("scene", "prepared"), load_test_images=True)
     frames = scene.train + scene.test
@@ -177,6 +208,33 @@ def test_a_view_whose_mask_is_all_wrong_takes_what_the_others_call_object(blende
     assert not (supported(frames, wrong, resolution=64)[0] & wrong[0]).any()  # the others support none of it
     theirs = supported(frames, wrong, resolution=64, own=False)[0]
     assert (theirs & truth[0]).sum() >= 0.97 * truth[0].sum()  # fatter than the object, but all of it
+
+
+def test_views_whose_masks_show_something_else_do_not_vote(blender_scene, tmp_path):
+    """One mask of something else (a corner of the wall) and one of half the object: in a plain vote
+    the two dissent together and cut the object from the right views' masks. The mask of something
+    else is left out of the vote; the half mask, all of which the others hold, keeps voting, and one
+    dissenter is within what the vote tolerates."""
+    scene = load_prepared(prepare(blender_scene, tmp_path / "ws").output("scene", "prepared"), load_test_images=True)
+    frames = scene.train + scene.test
+    truth = [f.mask > 0.5 for f in frames]
+    wrong = [t.clone() for t in truth]
+    wrong[0] = torch.zeros_like(truth[0])
+    wrong[0][:8, :8] = True
+    rows = truth[1].any(1).nonzero()[:, 0]
+    wrong[1][: int(rows.float().mean())] = False  # the object's upper half missing
+    right = range(2, len(frames))
+
+    def worst_right(support):
+        return min(iou((wrong[k] & support[k]).numpy(), truth[k].numpy()) for k in right)
+
+    assert worst_right(supported(frames, wrong, resolution=64)) < 0.9  # a plain vote cuts the object
+    voters, held, _ = voting_views(frames, wrong, 0.85, 0.7, resolution=64)
+    assert voters.tolist() == [False] + [True] * (len(frames) - 1), held
+    support = supported(frames, wrong, resolution=64, voters=voters)
+    assert worst_right(support) > 0.98
+    assert iou((wrong[1] & support[1]).numpy(), wrong[1].numpy()) > 0.95
+    assert not (wrong[0] & support[0]).any()
 
 
 def test_the_report_says_where_the_masks_came_from_or_why_there_are_none():

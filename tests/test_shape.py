@@ -87,6 +87,23 @@ def test_hull_votes_fast_path_matches_reference(mug_hull, need):
     assert 0 < int((ref >= need).sum()) < 20000
 
 
+def test_a_photo_that_crops_the_object_does_not_cut_what_it_left_out():
+    """A close-up whose frame cuts the sphere: beyond its border the mask's border pixel decides, so
+    the hull keeps the parts that photo did not show; a mask inside its frame still carves."""
+    sphere = lambda p: p.norm(dim=-1) < 0.3  # noqa: E731
+    cams = [camera(a, e) for a, e in ((0, 0), (90, 10), (180, -10), (270, 0), (45, 80))]
+    close = Camera(cams[0].K * torch.tensor([[3.0], [3.0], [1.0]]) + torch.tensor([[0, 0, -SIZE], [0, 0, -SIZE],
+                                                                                  [0, 0, 0.0]]),
+                   cams[0].viewmat, SIZE, SIZE)
+    frames = frames_of(sphere, [close] + cams[1:])
+    m = frames[0].mask > 0.5
+    assert m[0].any() and m[:, 0].any() and not m.all()  # the sphere runs out of the close-up
+    grid = visual_hull_grid(frames, resolution=64, extent=0.7, tolerate=0)
+    for cam in (camera(45, 30), camera(135, -40), camera(0, -60)):
+        s = silhouette_scores(silhouette(grid, cam)[0], true_mask(sphere, cam))
+        assert s["missed"] < 0.02 and s["excess"] < 0.5, s
+
+
 def test_hull_silhouette_is_the_mask_at_training_cameras_and_holds_the_object_elsewhere():
     sphere = lambda p: p.norm(dim=-1) < 0.3  # noqa: E731
     frames = frames_of(sphere, [camera(a, e) for a, e in ((0, 0), (90, 10), (180, -10), (270, 0), (45, 80))])

@@ -298,13 +298,18 @@ def silhouette_knowledge(ws: Workspace, thresholds: tuple[float, ...] = S_THRESH
                       for t in thresholds}}
 
 
+SHAPE_RUNS = {"no-prior": ("--mirror", "none", "--no-carve"), "prior": ()}
+"""`bench shape`'s two runs per object: no shape prior at all, and the defaults (mirror views where the
+mirror check passes, V and S carving)."""
+
+
 def bench_shape(mirror: str, root: str, objects: tuple[str, ...], preset: str, views: int, size: int = 200,
                 n_test: int = 32) -> dict:
-    """Carving on against off on meshes the silhouette model never saw: each rendered by the corpus
-    code (24 photos on the upper hemisphere, `n_test` test views over the whole sphere), `wgs all
-    --no-carve`, then a copy of that workspace with carving (repair, fine and eval rerun). G_f's
-    PSNR and silhouette IoU per object, the hull's leave-one-out estimate, what S knows at the test
-    views (`silhouette_knowledge`), and the mean gains."""
+    """The shape prior on against off on meshes the silhouette model never saw: each rendered by the
+    corpus code (24 photos on the upper hemisphere, `n_test` test views over the whole sphere), then
+    `wgs all` once per `SHAPE_RUNS` entry. G_f's PSNR and silhouette IoU per object, the hull's
+    leave-one-out estimate, what S knows at the test views (`silhouette_knowledge`), and the mean
+    gains."""
     from .prior.corpus import build_object, extract, list_objects, snapshot_dir
 
     base = Path(root)
@@ -323,23 +328,23 @@ def bench_shape(mirror: str, root: str, objects: tuple[str, ...], preset: str, v
         if not (scene / "object.json").is_file():
             build_object(listed[name], src, scene, size, 24, n_test, novel_elevations=(-85.0, 85.0))
         row: dict = {"object": name}
-        for carve in ("--no-carve", "--carve"):
-            ws = base / name / carve.strip("-")
-            if carve == "--carve" and not ws.exists():  # the stages before repair are shared
-                shutil.copytree(base / name / "no-carve", ws)
-            t = wgs_cli("-w", str(ws), "all", str(scene), "--views", str(views), "--preset", preset, carve)
-            res = json.loads(Workspace(ws).output("eval", "results").read_text())
-            row[carve.strip("-")] = {"psnr": res["psnr"], "silhouette_iou": res.get("silhouette_iou"),
-                                     "coarse_psnr": res["coarse"]["psnr"], "wall_s": round(t, 1),
-                                     "carving": Workspace(ws).manifest("repair").get("carving")}
+        for run, args in SHAPE_RUNS.items():
+            ws = Workspace(base / name / run)
+            t = wgs_cli("-w", str(ws.root), "all", str(scene), "--views", str(views), "--preset", preset, *args)
+            res = json.loads(ws.output("eval", "results").read_text())
+            row[run] = {"psnr": res["psnr"], "silhouette_iou": res.get("silhouette_iou"),
+                        "coarse_psnr": res["coarse"]["psnr"], "wall_s": round(t, 1),
+                        "mirror_views": bool((json.loads(ws.output("scene", "info").read_text()).get("mirror")
+                                              or {}).get("used")),
+                        "carving": ws.manifest("repair").get("carving")}
             shape = res.get("shape") or {}
             row["leave_one_out_iou"] = (shape.get("leave_one_out") or {}).get("iou")
             row["hull_test_iou"] = (shape.get("hull_test") or {}).get("iou")
-        row["gain_db"] = row["carve"]["psnr"] - row["no-carve"]["psnr"]
-        row["s_at_test_views"] = silhouette_knowledge(Workspace(base / name / "no-carve"))
+        row["gain_db"] = row["prior"]["psnr"] - row["no-prior"]["psnr"]
+        row["s_at_test_views"] = silhouette_knowledge(Workspace(base / name / "no-prior"))
         rows.append(row)
-        print(f"shape: {name}: G_f {row['no-carve']['psnr']:.2f} -> {row['carve']['psnr']:.2f} dB, silhouette IoU "
-              f"{row['no-carve']['silhouette_iou']:.3f} -> {row['carve']['silhouette_iou']:.3f}")
+        print(f"shape: {name}: G_f {row['no-prior']['psnr']:.2f} -> {row['prior']['psnr']:.2f} dB, silhouette IoU "
+              f"{row['no-prior']['silhouette_iou']:.3f} -> {row['prior']['silhouette_iou']:.3f}")
     gains = [r["gain_db"] for r in rows]
     return {"benchmark": "shape", "preset": preset, "views": views, "size": size, "objects": rows,
             "mean_gain_db": sum(gains) / len(gains) if gains else None,
@@ -445,12 +450,13 @@ def object_psnr(ws: Workspace, masks_from: Workspace) -> dict[str, float]:
 def bench_masks(scene: str, root: str, preset: str, views: int, downscale: int) -> dict:
     """`wgs all` on photos without masks, with automatic masks (the default, which goes on without
     masks where the views disagree) and with none, both scored by PSNR inside the automatic test
-    masks (`object_psnr`; masks made with `--mask-max-cut 1`, kept whatever the vote says); wall
+    masks (`object_psnr`; masks made with `--mask-max-cut 1 --mask-max-missed 1`, kept whatever the
+    vote and the training masks' hull say); wall
     times of each."""
     base = Path(root) / "masks"
     yardstick = Workspace(base / "scoring_masks")
     wgs_cli("-w", str(yardstick.root), "prepare", scene, "--views", str(views), "--downscale", str(downscale),
-            "--masks", "auto", "--mask-max-cut", "1")
+            "--masks", "auto", "--mask-max-cut", "1", "--mask-max-missed", "1")
     runs = {}
     for mode in ("auto", "none"):
         ws = base / mode

@@ -29,6 +29,8 @@ MEANING: dict[str, str] = {
     "masks": "Object masks: auto makes them where the scene has none (salient-object network + agreement "
              "between the posed views), none makes none, or a folder of masks named like the images.",
     "mask_agreement": "auto masks: share of the other views that must hold a voxel for it to stay object.",
+    "mask_voter_support": "auto masks: a view votes only while the other voters hold this share of its mask.",
+    "mask_max_missed": "auto masks: the most of a training mask that the training masks' hull may leave out.",
     "mask_max_cut": "auto masks: when agreement cuts more than this share of the network's object area, the "
                     "views disagree on the object and the scene goes on without masks (1: always keep them).",
     "mirror": "Where the object's leave-one-out silhouettes back a mirror plane, the training photos' mirror "

@@ -36,10 +36,16 @@ class PrepareConfig:
     # agreement between the posed views, wgs.segment), "none" makes none, or a folder of masks by image name
     masks: str = "auto"
     mask_agreement: float = 0.85  # auto: a voxel stays object for a view when this share of the other views hold it
+    # auto: a view's mask votes only while the other voters hold at least this share of it (a mask
+    # of something else, the wall's pattern or half the object, would cut the object from the others)
+    mask_voter_support: float = 0.7
     mask_model: str | None = None  # auto: an ONNX salient-object model to use instead of the packaged U^2-Net-p
     # auto: when agreement cuts more than this share of the network's object area (mean over the
     # views), the views disagree on what the object is, and the scene goes on without masks
     mask_max_cut: float = 0.3
+    # auto: the training masks' strict hull may leave out at most this share of any training mask;
+    # more means a mask misses part of the object, which the hull would then cut from every view
+    mask_max_missed: float = 0.05
     # where the object's leave-one-out silhouettes back a mirror plane (wgs.shape.symmetry), the
     # training photos' mirror images join them as training views: "outline" teaches where the object
     # is not (their masks carve: objects symmetric in shape), "full" their colours too (symmetric in
@@ -417,6 +423,7 @@ CHOICES: dict[str, tuple[str, ...]] = {"strategy": ("orm", "offline-rm", "loo"),
 RANGES: dict[str, tuple[float, float | None]] = {"views": (2, None), "downscale": (1, None), "sh_degree": (0, 3),
                                                  "ensemble": (1, None), "symmetries": (1, 8),
                                                  "repair_gain_views": (0, None), "mask_agreement": (0.0, 1.0),
+                                                 "mask_voter_support": (0.0, 1.0), "mask_max_missed": (0.0, 1.0),
                                                  "mask_max_cut": (0.0, 1.0), "mirror_directions": (1, None),
                                                  "mirror_max_missed": (0.0, 1.0), "outline_margin_px": (0, None),
                                                  "half_size_until": (0.0, 1.0), "prior_steps": (0, None)}

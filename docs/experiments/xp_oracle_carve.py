@@ -1,6 +1,6 @@
 """Carving's upper bound: S replaced by the silhouettes of the hull of every true mask the scene has
 (its training views and all test views, over the whole sphere), then `wgs all --carve` on a copy of
-a `--no-carve` workspace of `python -m wgs.bench shape`.
+the `no-prior` workspace (`--mirror none --no-carve`) of `python -m wgs.bench shape`.
 
     python xp_oracle_carve.py BENCH_ROOT OBJECT TAG [CONFIG.toml]
 
@@ -47,7 +47,7 @@ if __name__ == "__main__":
     config = sys.argv[4:5]
     ws = root / name / f"oracle-{tag}"
     if not ws.exists():
-        shutil.copytree(root / name / "no-carve", ws)
+        shutil.copytree(root / name / "no-prior", ws)
     repair.shape_models = oracle_predictor(ws, repair.shape_models)
     try:
         main(["-w", str(ws), *(["--config", config[0]] if config else []), "all", str(root / "scenes" / name),

@@ -155,21 +155,33 @@ def prepare(scene: RawScene, cfg: PrepareConfig, out: Path) -> dict[str, Any]:
     mask_info = {"source": "folder" if cfg.masks not in MASK_MODES else "given" if any(m is not None for m in masks)
                  else cfg.masks}
     if mask_info["source"] == "auto":
+        from ..segment.agreement import hull_missed
         from ..segment.automask import automatic_masks, mask_sheet
         from ..threads import thread_count
 
         made = automatic_masks(images, [cameras[n] for n in names], cfg.mask_agreement, cfg.mask_model,
-                               thread_count(), MASK_MIN_FRACTION)
-        made.record["without_agreement"] = [names[k] for k in made.record["without_agreement"]]
-        empty = [n for n, m in zip(names, made.masks, strict=True) if m.mean() < MASK_MIN_FRACTION]
+                               thread_count(), MASK_MIN_FRACTION, cfg.mask_voter_support)
+        for key in ("without_agreement", "not_voting", "network_found_nothing"):
+            made.record[key] = [names[k] for k in made.record[key]]
+        empty = made.record["network_found_nothing"]
         cut = made.record["cut_by_agreement"]["mean"]
+        n_train = len(scene.train)
+        missed = hull_missed([cameras[n] for n in names[:n_train]],
+                             [torch.from_numpy(m > 0.5) for m in made.masks[:n_train]])
+        made.record["training_hull_missed"] = [round(x, 4) for x in missed]
+        worst = int(np.argmax(missed))
         if empty:  # the network saw no object there: the scene goes on as one without masks
             mask_info = {"source": "none", "auto_failed": f"the network found no object in {', '.join(empty)}",
                          **made.record}
-        elif cut > cfg.mask_max_cut:  # masks that disagree cost more than the hull gives
+        elif cut > cfg.mask_max_cut or min(m.mean() for m in made.masks) < MASK_MIN_FRACTION:
+            # masks that disagree cost more than the hull gives
             mask_info = {"source": "none", "auto_failed": f"the views disagree on the object: agreement cut "
                          f"{100 * cut:.0f} % of the network's object area (over mask_max_cut "
                          f"{100 * cfg.mask_max_cut:.0f} %)", **made.record}
+        elif missed[worst] > cfg.mask_max_missed:  # a mask misses part of the object: the hull would cut it
+            mask_info = {"source": "none", "auto_failed": f"the training masks disagree: their hull leaves out "
+                         f"{100 * missed[worst]:.0f} % of the mask of {names[worst]} (over mask_max_missed "
+                         f"{100 * cfg.mask_max_missed:.0f} %)", **made.record}
         else:
             masks, mask_info = made.masks, {"source": "auto", **made.record}
             write_png(path_in(out, "masks_sheet.png"), mask_sheet(images[: len(scene.train)],

@@ -15,7 +15,8 @@ import torch
 
 from ..errors import InputError
 from ..scene.camera import Camera
-from ..shape.hull import HullGrid, grid_centres, kept_box, pixel_lookup, silhouette
+from ..scene.dataset import Frame
+from ..shape.hull import HullGrid, grid_centres, kept_box, pixel_lookup, silhouette, visual_hull_grid
 
 
 def votes_per_view(cameras: list[Camera], masks: list[torch.Tensor], points: torch.Tensor
@@ -40,30 +41,73 @@ def scaled(camera: Camera, longest: int) -> Camera:
 
 
 def supported(cameras: list[Camera], masks: list[torch.Tensor], agreement: float = 0.85, resolution: int = 96,
-              extent: float = 1.0, longest: int = 640, own: bool = True) -> list[torch.Tensor]:
+              extent: float = 1.0, longest: int = 640, own: bool = True, voters: torch.Tensor | None = None
+              ) -> list[torch.Tensor]:
     """Per view, [H, W] bool: pixels whose ray meets a voxel that at least `agreement` of the other
     views that see it hold in their masks (at least one other view must see it). Cameras in the
     normalised frame, where the object lies inside [-extent, extent]³. The grid's silhouettes are
     drawn at most `longest` pixels wide and scaled up (a voxel spans many pixels of a large photo).
-    `own` False: the voxels need not be in view i's own mask (what the others alone say is object)."""
+    `own` False: the voxels need not be in view i's own mask (what the others alone say is object).
+    `voters` [V] bool: the views whose masks take part in the vote (default: all)."""
+    voters = torch.ones(len(cameras), dtype=torch.bool) if voters is None else voters
+
     def votes_at(points):  # the region any view could call object: the box of the vote
         inside, seen = votes_per_view(cameras, masks, points)
-        return inside.sum(0), (inside, seen)
+        return inside[voters].sum(0), (inside, seen)
 
-    need = max(2, math.ceil(agreement * (len(cameras) - 1)))
+    need = max(2, math.ceil(agreement * (int(voters.sum()) - 1)))
     try:
         lo, hi, (_, (inside, seen)) = kept_box(votes_at, need, resolution, extent)
     except InputError:  # no region that many views hold: each view's own vote over the whole extent
         lo, hi = torch.full((3,), -extent), torch.full((3,), extent)
         inside, seen = votes_at(grid_centres(lo, hi, resolution))[1]
-    n_in, n_seen = inside.sum(0), seen.sum(0)
+    n_in, n_seen = inside[voters].sum(0), seen[voters].sum(0)
     out = []
     for v, cam in enumerate(cameras):
-        others_in, others_seen = n_in - inside[v].int(), n_seen - seen[v].int()
+        others_in, others_seen = n_in - (inside[v] & voters[v]).int(), n_seen - (seen[v] & voters[v]).int()
         occ = (others_seen >= 1) & (others_in >= torch.ceil(agreement * others_seen.float()).int())
         if own:
             occ &= inside[v]
-        small = silhouette(HullGrid(lo, hi, occ.reshape(resolution, resolution, resolution)), scaled(cam, longest))[0]
-        out.append(torch.nn.functional.interpolate(small[None, None].float(), (cam.height, cam.width),
-                                                   mode="nearest")[0, 0] > 0.5)
+        out.append(silhouette_at(HullGrid(lo, hi, occ.reshape(resolution, resolution, resolution)), cam, longest))
     return out
+
+
+def silhouette_at(grid: HullGrid, cam: Camera, longest: int = 640) -> torch.Tensor:
+    """[H, W] bool: the grid's silhouette, drawn at most `longest` pixels wide and scaled up."""
+    small = silhouette(grid, scaled(cam, longest))[0]
+    return torch.nn.functional.interpolate(small[None, None].float(), (cam.height, cam.width),
+                                           mode="nearest")[0, 0] > 0.5
+
+
+def hull_missed(cameras: list[Camera], masks: list[torch.Tensor], resolution: int = 96) -> list[float]:
+    """Per view, the share of its mask [H, W] bool that the strict hull of all the masks leaves out.
+    Masks of one object agree (about 0); a mask that misses part of the object cuts that part from
+    every view, which the training masks' hull (wgs.shape.hull, tolerating no mask) then loses."""
+    frames = [Frame(c.K.float(), c.viewmat.float(), c.width, c.height, name=str(k), mask=m.float())
+              for k, (c, m) in enumerate(zip(cameras, masks, strict=True))]
+    try:
+        grid = visual_hull_grid(frames, resolution, tolerate=0)
+    except InputError:
+        return [1.0] * len(frames)
+    return [float((m & ~silhouette_at(grid, f)).sum() / max(1, int(m.sum())))
+            for f, m in zip(frames, masks, strict=True)]
+
+
+def voting_views(cameras: list[Camera], masks: list[torch.Tensor], agreement: float, min_support: float,
+                 **kw) -> tuple[torch.Tensor, list[float], list[torch.Tensor]]:
+    """[V] bool, the views whose masks vote; the share of each view's mask that the voters hold; and
+    per view what the voters alone call object (`supported(..., own=False)`).
+
+    A view whose mask shows something else (a pattern of the wall, half the object) cuts the object
+    from the other views' masks wherever it sees it, since a vote tolerates few dissenters. So the
+    view whose mask the other voters hold least is left out of the vote while that share is under
+    `min_support`, one at a time (the worst first, as it also lowers the others' shares), and at
+    least 3 views keep voting."""
+    voters = torch.ones(len(cameras), dtype=torch.bool)
+    while True:
+        theirs = supported(cameras, masks, agreement, own=False, voters=voters, **kw)
+        held = [float((m & t).sum() / max(1, int(m.sum()))) for m, t in zip(masks, theirs, strict=True)]
+        worst = min((h, k) for k, h in enumerate(held) if voters[k])[1]
+        if held[worst] >= min_support or int(voters.sum()) <= 3:
+            return voters, held, theirs
+        voters[worst] = False

@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from ..scene.camera import Camera
-from .agreement import supported
+from .agreement import supported, voting_views
 from .refine import refine
 from .saliency import SaliencyNet
 
@@ -21,11 +21,13 @@ class AutoMasks:
 
 
 def automatic_masks(images: list[np.ndarray], cameras: list[Camera], agreement: float = 0.85,
-                    model: str | None = None, threads: int = 1, min_fraction: float = 1e-4) -> AutoMasks:
+                    model: str | None = None, threads: int = 1, min_fraction: float = 1e-4,
+                    voter_support: float = 0.7) -> AutoMasks:
     """Object masks for `images` [H, W, 3] in [0, 1] taken by `cameras` (normalised frame).
 
-    Order: the network's probability per photo; its > 0.5 region cut to what the other views'
-    regions support (`agreement.supported`, skipped with fewer than 3 views); the probability,
+    Order: the network's probability per photo; the views whose regions vote (`agreement.voting_views`:
+    a region the other voters hold less than `voter_support` of does not); each region cut to what
+    the other voters support (`agreement.supported`, skipped with fewer than 3 views); the probability,
     limited to the supported pixels, refined along the photo's edges and cleaned (`refine`). A view
     of which the others support less than `min_fraction` of the image (the network saw something
     else there) takes what the other views alone call object: the silhouette of their vote, fatter
@@ -36,13 +38,13 @@ def automatic_masks(images: list[np.ndarray], cameras: list[Camera], agreement: 
     t_net = time.perf_counter() - t0
     raw = [torch.from_numpy(p > 0.5) for p in probs]
     cams = [Camera(c.K.float(), c.viewmat.float(), c.width, c.height) for c in cameras]
-    support = supported(cams, raw, agreement) if len(cams) >= 3 else raw
-    masks, cut, alone, theirs = [], [], [], None
+    voting, held, theirs = (voting_views(cams, raw, agreement, voter_support) if len(cams) >= 3
+                             else (torch.ones(len(cams), dtype=torch.bool), [1.0] * len(cams), None))
+    support = supported(cams, raw, agreement, voters=voting) if len(cams) >= 3 else raw
+    masks, cut, alone = [], [], []
     for k, (img, p, r, s) in enumerate(zip(images, probs, raw, support, strict=True)):
         m = refine(img, np.where(s.numpy(), p, 0.0))
         if m.mean() < min_fraction:  # the others support nothing of it: what they alone call object
-            if len(cams) >= 3 and theirs is None:  # one vote for every such view
-                theirs = supported(cams, raw, agreement, own=False)
             m = theirs[k].numpy() if theirs is not None else refine(img, p)
             alone.append(k)
         masks.append(m.astype(np.float32))
@@ -52,6 +54,9 @@ def automatic_masks(images: list[np.ndarray], cameras: list[Camera], agreement: 
         "model": net.record.to_json(), "agreement": agreement if len(cameras) >= 3 else None,
         "cut_by_agreement": {"mean": float(np.mean(cut)), "max": float(np.max(cut))},
         "without_agreement": alone,
+        "network_found_nothing": [k for k, r in enumerate(raw) if r.float().mean() < min_fraction],
+        "not_voting": [k for k in range(len(cams)) if not voting[k]],
+        "held_by_voters": [round(h, 3) for h in held],
         "seconds_per_photo": round(seconds / max(1, len(images)), 3),
         "network_seconds_per_photo": round(t_net / max(1, len(images)), 3)})
 

@@ -45,6 +45,17 @@ def pixel_lookup(camera: Camera, points: torch.Tensor, near: float = 0.01) -> tu
     return inside, torch.where(inside, v * camera.width + u, torch.zeros_like(u))
 
 
+def mask_lookup(camera: Camera, mask: torch.Tensor, points: torch.Tensor, near: float = 0.01) -> torch.Tensor:
+    """Whether each point [N, 3] falls in the object `mask` [H, W] of `camera`: [N] bool. A point in
+    front of the camera but outside the frame takes the mask's value at the nearest border pixel:
+    where the object runs out of the photo, the photo cannot say where it ends (a photo that crops
+    the object would otherwise cut it); where the mask stays inside the frame, nothing changes."""
+    uv, z = project_points(points, camera.viewmat, camera.K)
+    u = torch.floor(uv[:, 0]).clamp(0, camera.width - 1).long()
+    v = torch.floor(uv[:, 1]).clamp(0, camera.height - 1).long()
+    return (z > near) & (mask.reshape(-1)[v * camera.width + u] > 0.5)
+
+
 @dataclass
 class HullGrid:
     """Occupancy on a regular grid of R³ voxels over the box lo..hi (normalised world).
@@ -124,8 +135,7 @@ def hull_votes_torch(frames, points: torch.Tensor, need: int, near: float = 0.01
     missed = torch.zeros(points.shape[0], dtype=torch.int32)
     alive = torch.arange(points.shape[0])
     for f in frames:
-        inside, idx = pixel_lookup(f, points[alive], near)
-        hit = inside & (f.mask.reshape(-1)[idx] > 0.5)
+        hit = mask_lookup(f, f.mask, points[alive], near)
         votes[alive] += hit.int()
         missed[alive] += (~hit).int()
         alive = alive[missed[alive] <= len(frames) - need]

@@ -31,8 +31,9 @@ def hull_votes(points, viewmats, Ks, masks, offsets, widths, heights, need, near
                 w = max(pz, eps)
                 u = np.floor((px * K[0, 0] + py * K[0, 1] + pz * K[0, 2]) / w)
                 v = np.floor((px * K[1, 0] + py * K[1, 1] + pz * K[1, 2]) / w)
-                if 0 <= u < widths[f] and 0 <= v < heights[f]:
-                    hit = masks[offsets[f] + int(v) * widths[f] + int(u)] != 0
+                u = min(max(u, 0.0), widths[f] - 1.0)  # off the frame: the border pixel (hull.mask_lookup)
+                v = min(max(v, 0.0), heights[f] - 1.0)
+                hit = masks[offsets[f] + int(v) * widths[f] + int(u)] != 0
             if hit:
                 hits += 1
             else:

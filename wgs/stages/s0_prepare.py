@@ -78,6 +78,8 @@ def mask_line(masks: dict, sheet: Path) -> str:
                 + ("; the other views support nothing of the network's mask of "
                    f"{', '.join(masks['without_agreement'])}: what they alone call object there"
                    if masks["without_agreement"] else "")
+                + (f"; {', '.join(masks['not_voting'])} did not vote (the others hold too little of their mask)"
+                   if masks.get("not_voting") else "")
                 + f"); check them in {sheet}, correct them with --masks DIR")
     if "auto_failed" in masks:
         return f"masks: none ({masks['auto_failed']}; --masks DIR takes yours)"
