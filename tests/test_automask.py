@@ -229,7 +229,7 @@ def test_views_whose_masks_show_something_else_do_not_vote(blender_scene, tmp_pa
         return min(iou((wrong[k] & support[k]).numpy(), truth[k].numpy()) for k in right)
 
     assert worst_right(supported(frames, wrong, resolution=64)) < 0.9  # a plain vote cuts the object
-    voters, held, _ = voting_views(frames, wrong, 0.85, 0.7, resolution=64)
+    voters, held = voting_views(frames, wrong, 0.85, 0.7, resolution=64)
     assert voters.tolist() == [False] + [True] * (len(frames) - 1), held
     support = supported(frames, wrong, resolution=64, voters=voters)
     assert worst_right(support) > 0.98

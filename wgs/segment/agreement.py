@@ -10,6 +10,7 @@ stays, since every view that sees it holds it. It only ever removes mask pixels.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 
@@ -40,6 +41,52 @@ def scaled(camera: Camera, longest: int) -> Camera:
     return Camera(K, camera.viewmat, max(1, round(camera.width * s)), max(1, round(camera.height * s)))
 
 
+@dataclass
+class VoteGrid:
+    """Every view's vote on the voxel centres of a box (normalised world): inside [V, R³] bool (in
+    the view's mask), seen [V, R³] bool (in its frame)."""
+
+    lo: torch.Tensor
+    hi: torch.Tensor
+    resolution: int
+    inside: torch.Tensor
+    seen: torch.Tensor
+
+
+def vote_grid(cameras: list[Camera], masks: list[torch.Tensor], voters: torch.Tensor, need: int,
+              resolution: int = 96, extent: float = 1.0) -> VoteGrid:
+    """The views' votes on the box of the voxels that at least `need` voters hold (`hull.kept_box`),
+    or on the whole [-extent, extent]³ where no voxel has that many."""
+    def votes_at(points):
+        inside, seen = votes_per_view(cameras, masks, points)
+        return inside[voters].sum(0), (inside, seen)
+
+    try:
+        lo, hi, (_, (inside, seen)) = kept_box(votes_at, need, resolution, extent)
+    except InputError:
+        lo, hi = torch.full((3,), -extent), torch.full((3,), extent)
+        inside, seen = votes_at(grid_centres(lo, hi, resolution))[1]
+    return VoteGrid(lo, hi, resolution, inside, seen)
+
+
+def vote_silhouettes(cameras: list[Camera], grid: VoteGrid, voters: torch.Tensor, agreement: float,
+                     longest: int = 640, own: bool = True) -> list[torch.Tensor]:
+    """Per view, [H, W] bool: the silhouette of the voxels that at least `agreement` of the other
+    voters that see them hold (at least one must see them); with `own`, only those in the view's
+    own mask."""
+    n_in, n_seen = grid.inside[voters].sum(0), grid.seen[voters].sum(0)
+    r = grid.resolution
+    out = []
+    for v, cam in enumerate(cameras):
+        others_in = n_in - (grid.inside[v] & voters[v]).int()
+        others_seen = n_seen - (grid.seen[v] & voters[v]).int()
+        occ = (others_seen >= 1) & (others_in >= torch.ceil(agreement * others_seen.float()).int())
+        if own:
+            occ &= grid.inside[v]
+        out.append(silhouette_at(HullGrid(grid.lo, grid.hi, occ.reshape(r, r, r)), cam, longest))
+    return out
+
+
 def supported(cameras: list[Camera], masks: list[torch.Tensor], agreement: float = 0.85, resolution: int = 96,
               extent: float = 1.0, longest: int = 640, own: bool = True, voters: torch.Tensor | None = None
               ) -> list[torch.Tensor]:
@@ -50,26 +97,9 @@ def supported(cameras: list[Camera], masks: list[torch.Tensor], agreement: float
     `own` False: the voxels need not be in view i's own mask (what the others alone say is object).
     `voters` [V] bool: the views whose masks take part in the vote (default: all)."""
     voters = torch.ones(len(cameras), dtype=torch.bool) if voters is None else voters
-
-    def votes_at(points):  # the region any view could call object: the box of the vote
-        inside, seen = votes_per_view(cameras, masks, points)
-        return inside[voters].sum(0), (inside, seen)
-
     need = max(2, math.ceil(agreement * (int(voters.sum()) - 1)))
-    try:
-        lo, hi, (_, (inside, seen)) = kept_box(votes_at, need, resolution, extent)
-    except InputError:  # no region that many views hold: each view's own vote over the whole extent
-        lo, hi = torch.full((3,), -extent), torch.full((3,), extent)
-        inside, seen = votes_at(grid_centres(lo, hi, resolution))[1]
-    n_in, n_seen = inside[voters].sum(0), seen[voters].sum(0)
-    out = []
-    for v, cam in enumerate(cameras):
-        others_in, others_seen = n_in - (inside[v] & voters[v]).int(), n_seen - (seen[v] & voters[v]).int()
-        occ = (others_seen >= 1) & (others_in >= torch.ceil(agreement * others_seen.float()).int())
-        if own:
-            occ &= inside[v]
-        out.append(silhouette_at(HullGrid(lo, hi, occ.reshape(resolution, resolution, resolution)), cam, longest))
-    return out
+    grid = vote_grid(cameras, masks, voters, need, resolution, extent)
+    return vote_silhouettes(cameras, grid, voters, agreement, longest, own)
 
 
 def silhouette_at(grid: HullGrid, cam: Camera, longest: int = 640) -> torch.Tensor:
@@ -94,20 +124,23 @@ def hull_missed(cameras: list[Camera], masks: list[torch.Tensor], resolution: in
 
 
 def voting_views(cameras: list[Camera], masks: list[torch.Tensor], agreement: float, min_support: float,
-                 **kw) -> tuple[torch.Tensor, list[float], list[torch.Tensor]]:
-    """[V] bool, the views whose masks vote; the share of each view's mask that the voters hold; and
-    per view what the voters alone call object (`supported(..., own=False)`).
+                 resolution: int = 96, extent: float = 1.0, longest: int = 160) -> tuple[torch.Tensor, list[float]]:
+    """[V] bool, the views whose masks vote, and the share of each view's mask that the voters hold.
 
     A view whose mask shows something else (a pattern of the wall, half the object) cuts the object
     from the other views' masks wherever it sees it, since a vote tolerates few dissenters. So the
     view whose mask the other voters hold least is left out of the vote while that share is under
     `min_support`, one at a time (the worst first, as it also lowers the others' shares), and at
-    least 3 views keep voting."""
+    least 3 views keep voting. The votes are taken once, on the box that half the views hold (it
+    holds what any later vote keeps), and the shares from silhouettes at most `longest` pixels wide."""
     voters = torch.ones(len(cameras), dtype=torch.bool)
+    grid = vote_grid(cameras, masks, voters, max(2, math.ceil(0.5 * (len(cameras) - 1))), resolution, extent)
     while True:
-        theirs = supported(cameras, masks, agreement, own=False, voters=voters, **kw)
+        theirs = vote_silhouettes(cameras, grid, voters, agreement, longest, own=False)
         held = [float((m & t).sum() / max(1, int(m.sum()))) for m, t in zip(masks, theirs, strict=True)]
         worst = min((h, k) for k, h in enumerate(held) if voters[k])[1]
         if held[worst] >= min_support or int(voters.sum()) <= 3:
-            return voters, held, theirs
+            return voters, held
         voters[worst] = False
+
+

@@ -38,13 +38,15 @@ def automatic_masks(images: list[np.ndarray], cameras: list[Camera], agreement: 
     t_net = time.perf_counter() - t0
     raw = [torch.from_numpy(p > 0.5) for p in probs]
     cams = [Camera(c.K.float(), c.viewmat.float(), c.width, c.height) for c in cameras]
-    voting, held, theirs = (voting_views(cams, raw, agreement, voter_support) if len(cams) >= 3
-                             else (torch.ones(len(cams), dtype=torch.bool), [1.0] * len(cams), None))
+    voting, held = (voting_views(cams, raw, agreement, voter_support) if len(cams) >= 3
+                    else (torch.ones(len(cams), dtype=torch.bool), [1.0] * len(cams)))
     support = supported(cams, raw, agreement, voters=voting) if len(cams) >= 3 else raw
-    masks, cut, alone = [], [], []
+    masks, cut, alone, theirs = [], [], [], None
     for k, (img, p, r, s) in enumerate(zip(images, probs, raw, support, strict=True)):
         m = refine(img, np.where(s.numpy(), p, 0.0))
         if m.mean() < min_fraction:  # the others support nothing of it: what they alone call object
+            if len(cams) >= 3 and theirs is None:  # one vote for every such view
+                theirs = supported(cams, raw, agreement, own=False, voters=voting)
             m = theirs[k].numpy() if theirs is not None else refine(img, p)
             alone.append(k)
         masks.append(m.astype(np.float32))
