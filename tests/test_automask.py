@@ -165,6 +165,10 @@ def test_views_that_disagree_on_the_object_leave_the_scene_without_masks(room_sc
     text = " ".join(res.output.split())  # the console wraps long lines
     assert text.count("masks: none (the views disagree on the object") == 1 and "--masks DIR" in text, res.output
     assert not Workspace(tmp_path / "ws").output("scene", "prepared", "masks").exists()
+    proposed = Workspace(tmp_path / "ws").output("scene", "masks_proposed")  # there to correct and give back
+    assert len(list(proposed.glob("*.png"))) == 12
+    assert f"{proposed}tocorrect" in "".join(res.output.split())  # the line says where they are
+    assert Workspace(tmp_path / "ws").output("scene", "masks_sheet").is_file()
 
 
 def test_a_training_mask_that_misses_part_of_the_object_leaves_the_scene_without_masks(room_scene, tmp_path,
@@ -235,6 +239,22 @@ def test_views_whose_masks_show_something_else_do_not_vote(blender_scene, tmp_pa
     assert worst_right(support) > 0.98
     assert iou((wrong[1] & support[1]).numpy(), wrong[1].numpy()) > 0.95
     assert not (wrong[0] & support[0]).any()
+
+
+def test_the_report_shows_the_automatic_masks(tmp_path):
+    from wgs.report_html import write_report_html
+
+    sheet = tmp_path / "masks_sheet.png"
+    write_png(sheet, np.zeros((8, 8, 3), np.float32))
+    page = tmp_path / "report.html"
+    common = {"title": "t", "times": [], "coarse": {}, "fine": {}, "per_fine": {"psnr": {}, "ssim": {}},
+              "per_coarse": {}, "sheets": [], "plot": tmp_path / "absent.png", "contact_sheet": None, "notes": []}
+    write_report_html(page, **common, masks=("used for training", sheet))
+    text = page.read_text()
+    assert "<h2>Automatic masks</h2>" in text and "used for training" in text
+    assert text.count("src='data:image/png;base64,") == 1
+    write_report_html(page, **common)
+    assert "Automatic masks" not in page.read_text()
 
 
 def test_the_report_says_where_the_masks_came_from_or_why_there_are_none():

@@ -276,7 +276,8 @@ _MODEL = {"model": "ckpt.pt",  # the model (normalised world) and its iteration
 REGISTRY: tuple[Stage, ...] = (
     Stage("scene", "scene", "prepare", PrepareConfig, (), "s0_prepare:run_prepare",
           {"prepared": ".", "info": "scene.json",
-           "masks_sheet": "masks_sheet.png"}),  # automatic masks: the training photos with their outline
+           "masks_sheet": "masks_sheet.png",  # automatic masks: the training photos with their outline
+           "masks_proposed": "masks_proposed"}),  # automatic masks not used (auto_failed): to correct
     Stage("coarse", "1_coarse", "coarse", CoarseConfig, ("scene",), "s1_coarse:run_coarse",
           {**_MODEL, "members": "members",  # the ensemble's other models, members/ckpt_<i>.pt (i >= 1)
            "subbands": "subbands"}),  # Haar subbands of the training views, subbands/{ref,render}/<stem>.exr

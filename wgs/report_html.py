@@ -61,9 +61,9 @@ def write_report_html(path: Path, *, title: str, times: list[dict[str, Any]], co
                       per_fine: dict[str, dict[str, float]], per_coarse: dict[str, dict[str, float]],
                       sheets: list[tuple[str, str, Path]], plot: Path, contact_sheet: Path | None,
                       notes: list[str], turntable: Path | None = None,
-                      outlines: list[tuple[str, str, Path]] = ()) -> None:
+                      outlines: list[tuple[str, str, Path]] = (), masks: tuple[str, Path] | None = None) -> None:
     """Write the page. sheets: (label, view name, PNG of `error_sheet`) per shown view; outlines the
-    same of `outline_sheet`."""
+    same of `outline_sheet`; masks: (caption, contact sheet of the automatic masks)."""
     parts = [f"<!doctype html><meta charset='utf-8'><title>{html.escape(title)}</title><style>{STYLE}</style>",
              f"<h1>{html.escape(title)}</h1>"]
     rows = []
@@ -98,6 +98,9 @@ def write_report_html(path: Path, *, title: str, times: list[dict[str, Any]], co
               _table(["view", "PSNR", "coarse PSNR", "gain", "SSIM"]
                      + [{"lpips": "LPIPS", "silhouette_iou": "silhouette IoU"}[k] for k in extra], rows),
               "</div>"]
+    if masks is not None and (uri := png_data_uri(masks[1])) is not None:
+        parts += ["<h2>Automatic masks</h2>", f"<p class='note'>{html.escape(masks[0])}</p>",
+                  f"<img src='{uri}' alt='automatic masks'>"]
     if contact_sheet is not None and (uri := png_data_uri(contact_sheet)) is not None:
         parts += ["<h2>Repair: pseudo references</h2><p class='note'>coarse render | repaired</p>",
                   f"<img src='{uri}' alt='repair contact sheet'>"]

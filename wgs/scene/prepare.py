@@ -184,8 +184,10 @@ def prepare(scene: RawScene, cfg: PrepareConfig, out: Path) -> dict[str, Any]:
                          f"{100 * cfg.mask_max_missed:.0f} %)", **made.record}
         else:
             masks, mask_info = made.masks, {"source": "auto", **made.record}
-            write_png(path_in(out, "masks_sheet.png"), mask_sheet(images[: len(scene.train)],
-                                                                 masks[: len(scene.train)]))
+        if mask_info["source"] == "none":  # not used, but there to be corrected and given back (--masks DIR)
+            for name, mask in zip(names, made.masks, strict=True):
+                write_png(path_in(out, "masks_proposed", name), mask)
+        write_png(path_in(out, "masks_sheet.png"), mask_sheet(images[:n_train], made.masks[:n_train]))
     has_mask: dict[str, bool] = {}
     for name, mask in zip(names, masks, strict=True):
         if mask is not None:

@@ -68,8 +68,9 @@ def run_prepare(ws: Workspace, cfg: PrepareConfig, env: StageEnv, force: bool = 
     return ws.run_stage("scene", cfg, extra, force, lambda run: import_scene(run, ws, scene_dir, scene, cfg, force))
 
 
-def mask_line(masks: dict, sheet: Path) -> str:
-    """Which masks the scene uses, in one line."""
+def mask_line(masks: dict, sheet: Path, proposed: Path) -> str:
+    """Which masks the scene uses, in one line; `sheet` and `proposed`: where the automatic masks'
+    contact sheet and, when they were not used, the masks themselves are."""
     if masks["source"] == "auto":
         m = masks["model"]
         return (f"masks: automatic ({m['package'] or m['file']}{' ' + m['version'] if m['version'] else ''}, "
@@ -82,7 +83,8 @@ def mask_line(masks: dict, sheet: Path) -> str:
                    if masks.get("not_voting") else "")
                 + f"); check them in {sheet}, correct them with --masks DIR")
     if "auto_failed" in masks:
-        return f"masks: none ({masks['auto_failed']}; --masks DIR takes yours)"
+        return (f"masks: none ({masks['auto_failed']}; --masks DIR takes yours; the automatic ones are in "
+                f"{proposed} to correct, outlined in {sheet})")
     return {"given": "masks: the scene's own", "folder": "masks: from the --masks folder",
             "none": "masks: none (--masks none)"}[masks["source"]]
 
@@ -121,7 +123,7 @@ def import_scene(run: StageRun, ws: Workspace, scene_dir: Path, scene: RawScene,
         log(f"  note: {note}")
     log(f"prepare: {scene.format} scene, {len(scene.train)} training + {len(scene.test)} test views")
     info = prepare(scene, cfg, run.dir)
-    log(mask_line(info["masks"], ws.output("scene", "masks_sheet")))
+    log(mask_line(info["masks"], ws.output("scene", "masks_sheet"), ws.output("scene", "masks_proposed")))
     if cfg.mirror != "none" and info["has_masks"]:
         info["mirror"] = find_mirror_views(run.dir, cfg)
         atomic_write_json(run.dir / "scene.json", info)

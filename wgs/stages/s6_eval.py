@@ -17,7 +17,7 @@ from ..curves import read_curve
 from ..errors import InputError
 from ..gaussians.splats import load_checkpoint
 from ..gaussians.trainer import render_frame
-from ..io import atomic_write_bytes, atomic_write_json
+from ..io import atomic_write_bytes, atomic_write_json, read_json
 from ..io.images import write_gif, write_png
 from ..lpips import LPIPS, LpipsUnavailable
 from ..metrics import psnr, ssim
@@ -296,11 +296,17 @@ def write_html(run: StageRun, ws: Workspace, frames, bg, pers: dict, results: di
     if lpips_note:
         notes.append(f"LPIPS not computed: {lpips_note}")
     contact = ws.output("repair", "contact_sheet")
+    masks_sheet = ws.output("scene", "masks_sheet")
+    used = (read_json(ws.output("scene", "info")).get("masks") or {}).get("source") == "auto"
+    masks = ((("The training photos with their automatic masks' outline (green), used for training."
+               if used else "The automatic masks, not used (see above): the outline they proposed; correct "
+               f"the masks in {ws.output('scene', 'masks_proposed')} and give them back with --masks DIR."),
+              masks_sheet) if masks_sheet.is_file() else None)
     write_report_html(run.output("report_html"), title=f"wgs report: {ws.root.name}", times=stage_times(ws),
                       coarse=results["coarse"], fine=results["fine"], per_fine=per_fine,
                       per_coarse=pers.get("coarse", {}), sheets=sheets, plot=run.path("error_vs_time.png"),
                       contact_sheet=contact if contact.is_file() else None, notes=notes,
-                      turntable=run.path("turntable.gif"), outlines=outlines)
+                      turntable=run.path("turntable.gif"), outlines=outlines, masks=masks)
 
 
 def run_eval(ws: Workspace, cfg: EvalConfig, env: StageEnv, force: bool = False) -> bool:
