@@ -94,7 +94,7 @@ def stage_common(f):
 @cli.command()
 @click.argument("scene", type=click.Path(path_type=Path))
 @config_options("prepare", "views", "downscale", "max_pixels", "matcher", "masks", "mask_agreement",
-                "mask_voter_support", "mask_max_cut", "mask_max_missed", "mirror")
+                "mask_voter_support", "mask_colour_ratio", "mask_max_cut", "mask_max_missed", "mirror")
 @stage_common
 @click.pass_obj
 def prepare(obj: Ctx, scene: Path, force, preset, **options) -> None:

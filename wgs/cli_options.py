@@ -30,6 +30,8 @@ MEANING: dict[str, str] = {
              "between the posed views), none makes none, or a folder of masks named like the images.",
     "mask_agreement": "auto masks: share of the other views that must hold a voxel for it to stay object.",
     "mask_voter_support": "auto masks: a view votes only while the other voters hold this share of its mask.",
+    "mask_colour_ratio": "auto masks: how much likelier on the mask than on the background a missed pixel's "
+                         "colour must be to be put back (0: never).",
     "mask_max_missed": "auto masks: the most of a training mask that the training masks' hull may leave out.",
     "mask_max_cut": "auto masks: when agreement cuts more than this share of the network's object area, the "
                     "views disagree on the object and the scene goes on without masks (1: always keep them).",

@@ -39,6 +39,9 @@ class PrepareConfig:
     # auto: a view's mask votes only while the other voters hold at least this share of it (a mask
     # of something else, the wall's pattern or half the object, would cut the object from the others)
     mask_voter_support: float = 0.7
+    # auto: a pixel the network missed is put back where the voters' silhouette allows object and its
+    # colour is this many times likelier on the mask than on the background (0: never)
+    mask_colour_ratio: float = 10.0
     mask_model: str | None = None  # auto: an ONNX salient-object model to use instead of the packaged U^2-Net-p
     # auto: when agreement cuts more than this share of the network's object area (mean over the
     # views), the views disagree on what the object is, and the scene goes on without masks
@@ -425,6 +428,7 @@ RANGES: dict[str, tuple[float, float | None]] = {"views": (2, None), "downscale"
                                                  "ensemble": (1, None), "symmetries": (1, 8),
                                                  "repair_gain_views": (0, None), "mask_agreement": (0.0, 1.0),
                                                  "mask_voter_support": (0.0, 1.0), "mask_max_missed": (0.0, 1.0),
+                                                 "mask_colour_ratio": (0.0, None),
                                                  "mask_max_cut": (0.0, 1.0), "mirror_directions": (1, None),
                                                  "mirror_max_missed": (0.0, 1.0), "outline_margin_px": (0, None),
                                                  "half_size_until": (0.0, 1.0), "prior_steps": (0, None)}

@@ -160,7 +160,8 @@ def prepare(scene: RawScene, cfg: PrepareConfig, out: Path) -> dict[str, Any]:
         from ..threads import thread_count
 
         made = automatic_masks(images, [cameras[n] for n in names], cfg.mask_agreement, cfg.mask_model,
-                               thread_count(), MASK_MIN_FRACTION, cfg.mask_voter_support)
+                               thread_count(), MASK_MIN_FRACTION, cfg.mask_voter_support,
+                               cfg.mask_colour_ratio)
         for key in ("without_agreement", "not_voting", "network_found_nothing"):
             made.record[key] = [names[k] for k in made.record[key]]
         empty = made.record["network_found_nothing"]

@@ -10,6 +10,7 @@ import torch
 
 from ..scene.camera import Camera
 from .agreement import supported, voting_views
+from .colour import complete
 from .refine import refine
 from .saliency import SaliencyNet
 
@@ -22,13 +23,15 @@ class AutoMasks:
 
 def automatic_masks(images: list[np.ndarray], cameras: list[Camera], agreement: float = 0.85,
                     model: str | None = None, threads: int = 1, min_fraction: float = 1e-4,
-                    voter_support: float = 0.7) -> AutoMasks:
+                    voter_support: float = 0.7, colour_ratio: float = 10.0) -> AutoMasks:
     """Object masks for `images` [H, W, 3] in [0, 1] taken by `cameras` (normalised frame).
 
     Order: the network's probability per photo; the views whose regions vote (`agreement.voting_views`:
     a region the other voters hold less than `voter_support` of does not); each region cut to what
     the other voters support (`agreement.supported`, skipped with fewer than 3 views); the probability,
-    limited to the supported pixels, refined along the photo's edges and cleaned (`refine`). A view
+    limited to the supported pixels, refined along the photo's edges and cleaned (`refine`); then
+    what the network missed inside the voters' silhouette, put back by colour (`colour.complete`,
+    `colour_ratio`; skipped with fewer than 3 views or a ratio of 0). A view
     of which the others support less than `min_fraction` of the image (the network saw something
     else there) takes what the other views alone call object: the silhouette of their vote, fatter
     than the object but consistent with the other masks (listed in the record's `without_agreement`)."""
@@ -40,15 +43,19 @@ def automatic_masks(images: list[np.ndarray], cameras: list[Camera], agreement: 
     cams = [Camera(c.K.float(), c.viewmat.float(), c.width, c.height) for c in cameras]
     voting, held = (voting_views(cams, raw, agreement, voter_support) if len(cams) >= 3
                     else (torch.ones(len(cams), dtype=torch.bool), [1.0] * len(cams)))
-    support = supported(cams, raw, agreement, voters=voting) if len(cams) >= 3 else raw
-    masks, cut, alone, theirs = [], [], [], None
+    voted = len(cams) >= 3
+    support = supported(cams, raw, agreement, voters=voting) if voted else raw
+    theirs = supported(cams, raw, agreement, own=False, voters=voting) if voted else None
+    masks, cut, alone, added = [], [], [], []
     for k, (img, p, r, s) in enumerate(zip(images, probs, raw, support, strict=True)):
         m = refine(img, np.where(s.numpy(), p, 0.0))
         if m.mean() < min_fraction:  # the others support nothing of it: what they alone call object
-            if len(cams) >= 3 and theirs is None:  # one vote for every such view
-                theirs = supported(cams, raw, agreement, own=False, voters=voting)
-            m = theirs[k].numpy() if theirs is not None else refine(img, p)
+            m = theirs[k].numpy() if voted else refine(img, p)
             alone.append(k)
+        elif voted and colour_ratio > 0:
+            before = int(m.sum())
+            m = complete(img, m, theirs[k].numpy(), colour_ratio)
+            added.append((int(m.sum()) - before) / max(1, before))
         masks.append(m.astype(np.float32))
         cut.append(float((r.numpy() & ~m).sum() / max(1, r.numpy().sum())))
     seconds = time.perf_counter() - t0
@@ -56,6 +63,8 @@ def automatic_masks(images: list[np.ndarray], cameras: list[Camera], agreement: 
         "model": net.record.to_json(), "agreement": agreement if len(cameras) >= 3 else None,
         "cut_by_agreement": {"mean": float(np.mean(cut)), "max": float(np.max(cut))},
         "without_agreement": alone,
+        "added_by_colour": {"mean": float(np.mean(added)) if added else 0.0,
+                            "max": float(np.max(added)) if added else 0.0},
         "network_found_nothing": [k for k, r in enumerate(raw) if r.float().mean() < min_fraction],
         "not_voting": [k for k in range(len(cams)) if not voting[k]],
         "held_by_voters": [round(h, 3) for h in held],
