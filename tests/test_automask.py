@@ -13,6 +13,7 @@ from make_scene import make_scene
 from scipy import ndimage
 
 from wgs.cli import cli
+from wgs.config import PrepareConfig
 from wgs.io.images import read_image, write_png
 from wgs.scene.dataset import load_prepared
 from wgs.segment import saliency
@@ -129,7 +130,7 @@ def test_colour_puts_back_a_part_the_network_missed_and_no_background():
     square = (y > 55) & (y < 80) & (x > 55) & (x < 80)
     rgb[disc | square] = (0.8, 0.1, 0.1) + 0.05 * rng.random((int((disc | square).sum()), 3))
     allowed = ndimage.binary_dilation(disc | square, iterations=6)
-    out = complete(rgb, disc, allowed)
+    out = complete(rgb, disc, allowed, ratio=PrepareConfig.mask_colour_ratio)
     assert out[square].mean() > 0.99 and out[disc].all()
     assert not (out & ~(disc | square)).any()
     assert (complete(rgb, disc, allowed, ratio=1e9) == disc).all()  # nothing is that much likelier

@@ -131,8 +131,9 @@ def voting_views(cameras: list[Camera], masks: list[torch.Tensor], agreement: fl
     from the other views' masks wherever it sees it, since a vote tolerates few dissenters. So the
     view whose mask the other voters hold least is left out of the vote while that share is under
     `min_support`, one at a time (the worst first, as it also lowers the others' shares), and at
-    least 3 views keep voting. The votes are taken once, on the box that half the views hold (it
-    holds what any later vote keeps), and the shares from silhouettes at most `longest` pixels wide."""
+    least 3 views keep voting. The votes are taken once, on the box of the voxels that half the views
+    hold (wider than the final vote's, so that what fewer voters keep can grow within it), and the
+    shares come from silhouettes at most `longest` pixels wide."""
     voters = torch.ones(len(cameras), dtype=torch.bool)
     grid = vote_grid(cameras, masks, voters, max(2, math.ceil(0.5 * (len(cameras) - 1))), resolution, extent)
     while True:
@@ -142,5 +143,3 @@ def voting_views(cameras: list[Camera], masks: list[torch.Tensor], agreement: fl
         if held[worst] >= min_support or int(voters.sum()) <= 3:
             return voters, held
         voters[worst] = False
-
-

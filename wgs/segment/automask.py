@@ -21,9 +21,8 @@ class AutoMasks:
     record: dict  # the model, the settings, what agreement removed and where it could not, the time per photo
 
 
-def automatic_masks(images: list[np.ndarray], cameras: list[Camera], agreement: float = 0.85,
-                    model: str | None = None, threads: int = 1, min_fraction: float = 1e-4,
-                    voter_support: float = 0.7, colour_ratio: float = 10.0) -> AutoMasks:
+def automatic_masks(images: list[np.ndarray], cameras: list[Camera], agreement: float, model: str | None,
+                    threads: int, min_fraction: float, voter_support: float, colour_ratio: float) -> AutoMasks:
     """Object masks for `images` [H, W, 3] in [0, 1] taken by `cameras` (normalised frame).
 
     Order: the network's probability per photo; the views whose regions vote (`agreement.voting_views`:

@@ -14,7 +14,7 @@ def colour_cells(rgb: np.ndarray, bins: int = 8) -> np.ndarray:
     return (q[..., 0] * bins + q[..., 1]) * bins + q[..., 2]
 
 
-def complete(rgb: np.ndarray, mask: np.ndarray, allowed: np.ndarray, ratio: float = 10.0, bins: int = 8,
+def complete(rgb: np.ndarray, mask: np.ndarray, allowed: np.ndarray, ratio: float, bins: int = 8,
              margin_px: int = 3) -> np.ndarray:
     """`mask` [H, W] bool plus the pixels of `allowed` [H, W] bool (where the other views' vote puts
     object) whose colour is at least `ratio` times likelier among the mask's pixels than among the
