@@ -53,6 +53,11 @@ class VoteGrid:
     seen: torch.Tensor
 
 
+def vote_need(agreement: float, voters: torch.Tensor) -> int:
+    """Votes a voxel needs to bound the vote's box: `agreement` of the other voters, at least 2."""
+    return max(2, math.ceil(agreement * (int(voters.sum()) - 1)))
+
+
 def vote_grid(cameras: list[Camera], masks: list[torch.Tensor], voters: torch.Tensor, need: int,
               resolution: int = 96, extent: float = 1.0) -> VoteGrid:
     """The views' votes on the box of the voxels that at least `need` voters hold (`hull.kept_box`),
@@ -97,8 +102,7 @@ def supported(cameras: list[Camera], masks: list[torch.Tensor], agreement: float
     `own` False: the voxels need not be in view i's own mask (what the others alone say is object).
     `voters` [V] bool: the views whose masks take part in the vote (default: all)."""
     voters = torch.ones(len(cameras), dtype=torch.bool) if voters is None else voters
-    need = max(2, math.ceil(agreement * (int(voters.sum()) - 1)))
-    grid = vote_grid(cameras, masks, voters, need, resolution, extent)
+    grid = vote_grid(cameras, masks, voters, vote_need(agreement, voters), resolution, extent)
     return vote_silhouettes(cameras, grid, voters, agreement, longest, own)
 
 

@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from ..scene.camera import Camera
-from .agreement import supported, voting_views
+from .agreement import vote_grid, vote_need, vote_silhouettes, voting_views
 from .colour import complete
 from .refine import refine
 from .saliency import SaliencyNet
@@ -40,11 +40,14 @@ def automatic_masks(images: list[np.ndarray], cameras: list[Camera], agreement: 
     t_net = time.perf_counter() - t0
     raw = [torch.from_numpy(p > 0.5) for p in probs]
     cams = [Camera(c.K.float(), c.viewmat.float(), c.width, c.height) for c in cameras]
-    voting, held = (voting_views(cams, raw, agreement, voter_support) if len(cams) >= 3
-                    else (torch.ones(len(cams), dtype=torch.bool), [1.0] * len(cams)))
     voted = len(cams) >= 3
-    support = supported(cams, raw, agreement, voters=voting) if voted else raw
-    theirs = supported(cams, raw, agreement, own=False, voters=voting) if voted else None
+    voting, held = (voting_views(cams, raw, agreement, voter_support) if voted
+                    else (torch.ones(len(cams), dtype=torch.bool), [1.0] * len(cams)))
+    support, theirs = raw, None
+    if voted:  # one vote: what the voters support within each view's mask, and what they alone call object
+        grid = vote_grid(cams, raw, voting, vote_need(agreement, voting))
+        support = vote_silhouettes(cams, grid, voting, agreement)
+        theirs = vote_silhouettes(cams, grid, voting, agreement, own=False)
     masks, cut, alone, added = [], [], [], []
     for k, (img, p, r, s) in enumerate(zip(images, probs, raw, support, strict=True)):
         m = refine(img, np.where(s.numpy(), p, 0.0))

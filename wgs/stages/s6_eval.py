@@ -296,12 +296,13 @@ def write_html(run: StageRun, ws: Workspace, frames, bg, pers: dict, results: di
     if lpips_note:
         notes.append(f"LPIPS not computed: {lpips_note}")
     contact = ws.output("repair", "contact_sheet")
-    masks_sheet = ws.output("scene", "masks_sheet")
-    used = (read_json(ws.output("scene", "info")).get("masks") or {}).get("source") == "auto"
-    masks = ((("The training photos with their automatic masks' outline (green), used for training."
-               if used else "The automatic masks, not used (see above): the outline they proposed; correct "
-               f"the masks in {ws.output('scene', 'masks_proposed')} and give them back with --masks DIR."),
-              masks_sheet) if masks_sheet.is_file() else None)
+    masks_sheet, masks = ws.output("scene", "masks_sheet"), None
+    if masks_sheet.is_file():
+        used = (read_json(ws.output("scene", "info")).get("masks") or {}).get("source") == "auto"
+        caption = ("The training photos with their automatic masks' outline (green), used for training." if used
+                   else "The automatic masks, not used (see above): the outline they proposed; correct the masks "
+                   f"in {ws.output('scene', 'masks_proposed')} and give them back with --masks DIR.")
+        masks = (caption, masks_sheet)
     write_report_html(run.output("report_html"), title=f"wgs report: {ws.root.name}", times=stage_times(ws),
                       coarse=results["coarse"], fine=results["fine"], per_fine=per_fine,
                       per_coarse=pers.get("coarse", {}), sheets=sheets, plot=run.path("error_vs_time.png"),
