@@ -298,3 +298,20 @@ def test_the_report_says_where_the_masks_came_from_or_why_there_are_none():
     assert note.startswith("No masks") and "disagree" in note and "--masks DIR" in note
     for plain in ({"source": "given"}, {"source": "none"}, {}):
         assert masks_note(SimpleNamespace(info={"masks": plain})) is None
+
+
+def test_a_training_photo_that_crops_the_object_is_named(blender_scene, scene_copy, tmp_path):
+    """A training photo whose mask reaches the frame's edge crops the object: prepare says which
+    and records it; photos that hold the whole object record nothing."""
+    photo = scene_copy / "train" / "r_1.png"
+    rgba = read_image(photo)
+    rgba[10:30, :6, 3] = 1.0  # the object now runs off the left edge
+    write_png(photo, rgba)
+    res = CliRunner().invoke(cli, ["-w", str(tmp_path / "ws"), "prepare", str(scene_copy), "--mirror", "none"],
+                             catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    said = " ".join(res.output.split())
+    assert "the object reaches the frame's edge in 1 of the 4 training photos (train_r_1.png)" in said, said
+    assert Workspace(tmp_path / "ws").manifest("scene")["summary"]["masks"]["training_cropped"] == ["train_r_1.png"]
+    whole = prepare(blender_scene, tmp_path / "ws_whole")
+    assert whole.manifest("scene")["summary"]["masks"]["training_cropped"] == []

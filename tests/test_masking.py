@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from wgs.masking import make_region_masks
+from wgs.masking import edge_share, make_region_masks
 
 
 def random_shapes(v=3, h=64, w=80, seed=0):
@@ -53,3 +53,11 @@ def test_bad_arguments():
         make_region_masks(obj, coverage=1.5)
     with pytest.raises(ValueError, match="empty"):
         make_region_masks(torch.zeros(1, 8, 8))
+
+
+def test_edge_share_counts_the_object_on_the_frames_edge():
+    mask = torch.zeros(20, 30)
+    mask[5:15, 10:20] = 1.0
+    assert edge_share(mask) == 0.0  # held whole
+    mask[4:14, 0:12] = 1.0  # now reaching the left edge over 10 of its 18 inner rows
+    assert edge_share(mask) == pytest.approx(10 / (2 * 30 + 2 * 18))

@@ -1,5 +1,5 @@
-"""Masks: `grow` (a mask's reach), and random region masks for the mask-data stage
-(WaveletGaussian's online random masking).
+"""Masks: `grow` (a mask's reach), `edge_share` (how much of a photo's edge is object), and random
+region masks for the mask-data stage (WaveletGaussian's online random masking).
 
 Each training view gets `n_regions` ellipses placed on the object. Their union is scaled so that
 it hides `coverage` of the object's mask area at every iteration; with `offline=False` each region
@@ -61,6 +61,14 @@ class RegionMasks:
         r = self.radii[view]
         d = ((xs - centers[:, 0]) / r[:, 0]) ** 2 + ((ys - centers[:, 1]) / r[:, 1]) ** 2
         return d.min(dim=-1).values
+
+
+def edge_share(mask: torch.Tensor) -> float:
+    """Share of the outermost pixels of `mask` [H, W] that are object (> 0.5): above a few per cent,
+    the photo crops its object."""
+    m = mask > 0.5
+    edge = torch.cat([m[0], m[-1], m[1:-1, 0], m[1:-1, -1]])
+    return float(edge.float().mean())
 
 
 def make_region_masks(objects: torch.Tensor, n_regions: int = 10, coverage: float = 0.5, drift: float = 0.08,

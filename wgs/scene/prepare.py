@@ -17,6 +17,7 @@ from ..config import PrepareConfig
 from ..errors import InputError
 from ..io import atomic_write_bytes, atomic_write_json, path_in
 from ..io.images import downscale, find_with_stem, read_image, split_rgba, to_mask, write_png
+from ..masking import edge_share
 from .camera import Camera
 from .colmap import undistort, write_model
 from .convention import normalisation_from_cameras, orthonormalise, rotation_error, scale_intrinsics
@@ -26,6 +27,9 @@ from .types import RawScene, View
 
 MASK_MIN_FRACTION = 1e-4  # a mask with less foreground than this is empty
 MASK_MODES = ("auto", "none")  # PrepareConfig.masks: these, or a folder of masks
+# a training photo crops its object when more than this share of its frame's edge is object on its
+# mask (a speck on the edge does not count)
+CROP_EDGE_SHARE = 0.02
 
 
 def scene_inputs_digest(scene: RawScene) -> str:
@@ -154,6 +158,7 @@ def prepare(scene: RawScene, cfg: PrepareConfig, out: Path) -> dict[str, Any]:
                                    *sizes[-1])
     mask_info = {"source": "folder" if cfg.masks not in MASK_MODES else "given" if any(m is not None for m in masks)
                  else cfg.masks}
+    judged = masks  # the masks the crop check reads: those used, or the automatic ones proposed
     if mask_info["source"] == "auto":
         from ..segment.agreement import hull_missed
         from ..segment.automask import automatic_masks, mask_sheet
@@ -185,10 +190,14 @@ def prepare(scene: RawScene, cfg: PrepareConfig, out: Path) -> dict[str, Any]:
                          f"{100 * cfg.mask_max_missed:.0f} %)", **made.record}
         else:
             masks, mask_info = made.masks, {"source": "auto", **made.record}
+        judged = made.masks
         if mask_info["source"] == "none":  # not used, but there to be corrected and given back (--masks DIR)
             for name, mask in zip(names, made.masks, strict=True):
                 write_png(path_in(out, "masks_proposed", name), mask)
         write_png(path_in(out, "masks_sheet.png"), mask_sheet(images[:n_train], made.masks[:n_train]))
+    mask_info["training_cropped"] = [
+        n for n, m in zip(names[: len(scene.train)], judged, strict=False)
+        if m is not None and edge_share(torch.from_numpy(np.ascontiguousarray(m))) > CROP_EDGE_SHARE]
     has_mask: dict[str, bool] = {}
     for name, mask in zip(names, masks, strict=True):
         if mask is not None:

@@ -124,6 +124,11 @@ def import_scene(run: StageRun, ws: Workspace, scene_dir: Path, scene: RawScene,
     log(f"prepare: {scene.format} scene, {len(scene.train)} training + {len(scene.test)} test views")
     info = prepare(scene, cfg, run.dir)
     log(mask_line(info["masks"], ws.output("scene", "masks_sheet"), ws.output("scene", "masks_proposed")))
+    cropped, n = info["masks"]["training_cropped"], len(info["train_names"])
+    if cropped:
+        log(f"masks: the object reaches the frame's edge in {len(cropped)} of the {n} training photos "
+            f"({', '.join(cropped)}): photos that hold the whole object bound more of it (sparse_{n}.txt names "
+            "the training views)")
     if cfg.mirror != "none" and info["has_masks"]:
         info["mirror"] = find_mirror_views(run.dir, cfg)
         atomic_write_json(run.dir / "scene.json", info)
