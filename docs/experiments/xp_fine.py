@@ -1,4 +1,5 @@
-"""Fine stage only on a base workspace's stages (symlinked), with overrides; G_f PSNR at all test views.
+"""Fine stage only on a base workspace's stages (symlinked), with overrides; G_f PSNR and
+silhouette IoU at all test views.
 usage: python xp_fine.py BASE TAG '{"iterations": 2500}' [REPAIR_DIR]"""
 import json
 import sys
@@ -16,11 +17,12 @@ from wgs.stages.shared import background_for
 from wgs.workspace import STAGE_DIRS, Workspace
 
 
-def test_psnr(ws: Workspace, stage: str) -> float:
+def test_scores(ws: Workspace, stage: str) -> dict[str, float]:
+    """Mean PSNR and (where the test views have masks) silhouette IoU over all test views."""
     scene = load_prepared(ws.stage_dir("scene"), load_test_images=True)
     splats = load_checkpoint(ws.output(stage, "model"), scene.norm)[0]
     per = evaluate_model(splats, scene.test, torch.device("cpu"), background_for(scene), None)
-    return sum(per["psnr"].values()) / len(per["psnr"])
+    return {k: round(sum(v.values()) / len(v), 4) for k, v in per.items() if k in ("psnr", "silhouette_iou")}
 
 
 if __name__ == "__main__":
@@ -37,8 +39,8 @@ if __name__ == "__main__":
     t0 = time.perf_counter()
     run_stage("fine", ws, resolve("fine", cli=over), StageEnv(torch.device("cpu"), seed), force=True)
     secs = time.perf_counter() - t0
-    p = test_psnr(ws, "fine")
-    res = {"tag": tag, "over": over, "seed": seed, "repair": str(repair), "gf": round(p, 4), "fine_s": round(secs, 1)}
+    res = {"tag": tag, "over": over, "seed": seed, "repair": str(repair), **test_scores(ws, "fine"),
+           "fine_s": round(secs, 1)}
     print(json.dumps(res), flush=True)
     with open("fine_results.jsonl", "a") as fh:
         fh.write(json.dumps(res) + "\n")
