@@ -296,8 +296,12 @@ def test_the_report_says_where_the_masks_came_from_or_why_there_are_none():
     failed = {"source": "none", "auto_failed": "the views disagree on the object: agreement cut 47 %"}
     note = masks_note(SimpleNamespace(info={"masks": failed}))
     assert note.startswith("No masks") and "disagree" in note and "--masks DIR" in note
-    for plain in ({"source": "given"}, {"source": "none"}, {}):
+    for plain in ({"source": "given"}, {"source": "none"}, {}, {"source": "given", "training_cropped": []}):
         assert masks_note(SimpleNamespace(info={"masks": plain})) is None
+    cropped = masks_note(SimpleNamespace(info={"masks": {"source": "given", "training_cropped": ["a.png", "b.png"]}}))
+    assert cropped.startswith("Training photos that crop the object") and "a.png, b.png" in cropped
+    both = masks_note(SimpleNamespace(info={"masks": {**failed, "training_cropped": ["a.png"]}}))
+    assert both.startswith("No masks") and "crop the object" in both
 
 
 def test_a_training_photo_that_crops_the_object_is_named(blender_scene, scene_copy, tmp_path):

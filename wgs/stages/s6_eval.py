@@ -149,15 +149,19 @@ def shape_reference(scene, frames: list[Frame], resolution: int, carved: HullGri
 
 def masks_note(scene) -> str | None:
     """Where the masks came from when wgs made them (the truth is composited with them), or why the
-    automatic ones were not used."""
+    automatic ones were not used; and which training photos crop the object."""
     masks = scene.info.get("masks") or {}
+    notes = []
     if masks.get("source") == "auto":
-        return ("The masks are automatic (`wgs prepare --masks auto`): the test views' ground truth is composited "
-                "with them, so these scores measure against wgs's own idea of the object's outline.")
-    if masks.get("auto_failed"):
-        return (f"No masks: the automatic ones were not used ({masks['auto_failed']}), so there is no visual hull "
-                "and no silhouette score; `wgs prepare --masks DIR` takes yours.")
-    return None
+        notes.append("The masks are automatic (`wgs prepare --masks auto`): the test views' ground truth is "
+                     "composited with them, so these scores measure against wgs's own idea of the object's outline.")
+    elif masks.get("auto_failed"):
+        notes.append(f"No masks: the automatic ones were not used ({masks['auto_failed']}), so there is no visual "
+                     "hull and no silhouette score; `wgs prepare --masks DIR` takes yours.")
+    if masks.get("training_cropped"):
+        notes.append(f"Training photos that crop the object (their mask reaches the frame's edge): "
+                     f"{', '.join(masks['training_cropped'])}; photos that hold the whole object bound more of it.")
+    return " ".join(notes) or None
 
 
 def shape_line(coarse: dict, fine: dict, shape: dict) -> str:
