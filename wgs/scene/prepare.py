@@ -196,7 +196,7 @@ def prepare(scene: RawScene, cfg: PrepareConfig, out: Path) -> dict[str, Any]:
                 write_png(path_in(out, "masks_proposed", name), mask)
         write_png(path_in(out, "masks_sheet.png"), mask_sheet(images[:n_train], made.masks[:n_train]))
     mask_info["training_cropped"] = [
-        n for n, m in zip(names[: len(scene.train)], judged, strict=False)
+        n for n, m in zip(names[: len(scene.train)], judged[: len(scene.train)], strict=True)
         if m is not None and edge_share(torch.from_numpy(np.ascontiguousarray(m))) > CROP_EDGE_SHARE]
     has_mask: dict[str, bool] = {}
     for name, mask in zip(names, masks, strict=True):

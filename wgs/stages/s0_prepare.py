@@ -127,8 +127,8 @@ def import_scene(run: StageRun, ws: Workspace, scene_dir: Path, scene: RawScene,
     cropped, n = info["masks"]["training_cropped"], len(info["train_names"])
     if cropped:
         log(f"masks: the object reaches the frame's edge in {len(cropped)} of the {n} training photos "
-            f"({', '.join(cropped)}): photos that hold the whole object bound more of it (sparse_{n}.txt names "
-            "the training views)")
+            f"({', '.join(cropped)}): photos that hold the whole object bound more of it (--views N takes the "
+            "ones sparse_N.txt names)")
     if cfg.mirror != "none" and info["has_masks"]:
         info["mirror"] = find_mirror_views(run.dir, cfg)
         atomic_write_json(run.dir / "scene.json", info)
