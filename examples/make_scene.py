@@ -4,9 +4,11 @@ The object (a few textured ellipsoids, different per seed) is ray-cast analytica
 Gaussian rasterizer, so it is an independent reference. RGBA images: alpha is the object mask.
 With `--room` the object stands in a room instead (a striped table under it, a patterned wall
 around it, each view lit differently): RGB photos without masks, the true masks in `true_masks/`
-(what automatic masking is measured against).
+(what automatic masking is measured against). With `--close-up` the training photos are taken
+from one side and so close that the object runs out of every one of them (a front-facing capture
+like DTU's), while the test views stand back and see all of it.
 
-    python examples/make_scene.py OUT_DIR [--seed S] [--size PX] [--train 4] [--test 16] [--room]
+    python examples/make_scene.py OUT_DIR [--seed S] [--size PX] [--train 4] [--test 16] [--room] [--close-up]
 """
 
 from __future__ import annotations
@@ -140,23 +142,33 @@ def render(parts: list[dict], c2w: np.ndarray, size: int, ss: int = 2, backgroun
     return rgba
 
 
-def camera_positions(n: int, rng: np.random.Generator, train: bool) -> list[np.ndarray]:
+CLOSE_UP_DISTANCE = 2.0  # training cameras of --close-up: the object (about 1.1 across its centre) overfills them
+CLOSE_UP_ARC = math.radians(180.0)  # ... within this arc of azimuths, all from one side
+STAND_BACK_DISTANCE = 3.6  # test cameras of --close-up, which see the whole object
+
+
+def camera_positions(n: int, rng: np.random.Generator, train: bool, close_up: bool = False) -> list[np.ndarray]:
     out = []
     for i in range(n):
-        az = 2 * math.pi * (i / n) + (rng.uniform(-0.2, 0.2) if train else 0.37)
+        if close_up:  # front-facing: azimuths spread over one arc, the test views a little wider
+            span = CLOSE_UP_ARC * (1.0 if train else 1.4)
+            az = span * (i / max(n - 1, 1) - 0.5) + (rng.uniform(-0.1, 0.1) if train else 0.0)
+        else:
+            az = 2 * math.pi * (i / n) + (rng.uniform(-0.2, 0.2) if train else 0.37)
         el = math.radians(rng.uniform(15, 45) if train else -10 + 60 * ((i * 7) % n) / max(n - 1, 1))
-        out.append(RADIUS * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)]))
+        radius = (CLOSE_UP_DISTANCE if train else STAND_BACK_DISTANCE) if close_up else RADIUS
+        out.append(radius * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)]))
     return out
 
 
 def make_scene(out: Path, seed: int = 0, size: int = 128, n_train: int = 4, n_test: int = 16,
-               room: bool = False) -> Path:
+               room: bool = False, close_up: bool = False) -> Path:
     rng = np.random.default_rng(seed)
     parts = make_object(rng)
     out.mkdir(parents=True, exist_ok=True)
     for split, n in (("train", n_train), ("test", n_test)):
         frames = []
-        for i, eye in enumerate(camera_positions(n, rng, split == "train")):
+        for i, eye in enumerate(camera_positions(n, rng, split == "train", close_up)):
             c2w = look_at_c2w(eye)
             img = render(parts, c2w, size, background=rng if room else None).astype(np.float32)
             if room:  # a photo without a mask, and the true mask apart
@@ -176,8 +188,10 @@ def main() -> None:
     ap.add_argument("--train", type=int, default=4)
     ap.add_argument("--test", type=int, default=16)
     ap.add_argument("--room", action="store_true", help="the object in a room, photos without masks")
+    ap.add_argument("--close-up", action="store_true",
+                    help="training photos from one side, so close that the object runs out of every one")
     a = ap.parse_args()
-    make_scene(a.out, a.seed, a.size, a.train, a.test, a.room)
+    make_scene(a.out, a.seed, a.size, a.train, a.test, a.room, a.close_up)
     print(f"wrote {a.out} (seed {a.seed}, {a.size}x{a.size}, {a.train} train + {a.test} test views)")
 
 

@@ -1,5 +1,7 @@
 """The fine stage's pseudo-view weight over the iterations and the model it starts from."""
 
+from types import SimpleNamespace
+
 import pytest
 
 from wgs.config import FineConfig, resolve
@@ -19,11 +21,11 @@ def test_gaussianobject_schedule_ramps_then_stops():
     assert w(701) == 0.0
 
 
-def test_start_auto_is_the_hull_with_masks_else_g_c():
-    assert start_of(FineConfig(), has_masks=True) == "hull"
-    assert start_of(FineConfig(), has_masks=False) == "coarse"
-    assert start_of(FineConfig(start="coarse"), has_masks=True) == "coarse"
-    assert start_of(FineConfig(start="hull"), has_masks=False) == "hull"
+def test_start_auto_is_g_c_without_masks_and_a_given_start_is_kept():
+    """(With masks, auto asks whether the hull cuts the object: tests/test_off_frame.py.)"""
+    without = SimpleNamespace(has_masks=False, photos=[])
+    assert start_of(FineConfig(), without) == "coarse"
+    assert start_of(FineConfig(start="hull"), without) == "hull"
 
 
 def test_unknown_start_is_refused():

@@ -45,15 +45,45 @@ def pixel_lookup(camera: Camera, points: torch.Tensor, near: float = 0.01) -> tu
     return inside, torch.where(inside, v * camera.width + u, torch.zeros_like(u))
 
 
-def mask_lookup(camera: Camera, mask: torch.Tensor, points: torch.Tensor, near: float = 0.01) -> torch.Tensor:
-    """Whether each point [N, 3] falls in the object `mask` [H, W] of `camera`: [N] bool. A point in
-    front of the camera but outside the frame takes the mask's value at the nearest border pixel:
-    where the object runs out of the photo, the photo cannot say where it ends (a photo that crops
-    the object would otherwise cut it); where the mask stays inside the frame, nothing changes."""
+# What a photo says of a point in front of it that falls outside its frame where its mask runs into
+# the frame's edge (the object runs out of the photo there; where the mask stays inside the frame,
+# a point outside it is background under every rule):
+# - "abstain": nothing. The point needs the masks of enough other views (`votes_needed`): a photo
+#   that crops the object does not cut it, and space that too few photos see is not made object.
+# - "object": the border pixel's value (the photo cannot say where the object ends). Space no
+#   photo sees is then object, out to the grid's extent.
+# - "background": the photo cuts everything it did not show.
+OFF_FRAME = ("abstain", "object", "background")
+OFF_FRAME_RULE = "abstain"  # the rule every hull and vote takes (docs/experiments/xp_off_frame.py compares them)
+# under "abstain" a point needs this many masks that hold it (fewer where fewer views are asked for):
+# two views bound a point along a long wedge only, which a tolerant hull fills (generated close-ups:
+# tolerant hull 2.9x the true hull's volume with 2, 1.8x with 3; docs/shape.md)
+MIN_HOLDING_VIEWS = 3
+
+
+def mask_lookup(camera: Camera, mask: torch.Tensor, points: torch.Tensor, near: float = 0.01,
+                off_frame: str | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Whether the object `mask` [H, W] of `camera` holds each point [N, 3], and whether the photo
+    abstains on it: ([N] bool, [N] bool). A point behind the camera is not held; one outside the
+    frame is not held where the mask's nearest border pixel is background, and is decided by
+    `off_frame` (`OFF_FRAME`) where it is object."""
+    off_frame = off_frame or OFF_FRAME_RULE
     uv, z = project_points(points, camera.viewmat, camera.K)
-    u = torch.floor(uv[:, 0]).clamp(0, camera.width - 1).long()
-    v = torch.floor(uv[:, 1]).clamp(0, camera.height - 1).long()
-    return (z > near) & (mask.reshape(-1)[v * camera.width + u] > 0.5)
+    u, v = torch.floor(uv[:, 0]), torch.floor(uv[:, 1])
+    outside = (u < 0) | (v < 0) | (u > camera.width - 1) | (v > camera.height - 1)
+    u, v = u.clamp(0, camera.width - 1).long(), v.clamp(0, camera.height - 1).long()
+    border = (z > near) & (mask.reshape(-1)[v * camera.width + u] > 0.5)
+    cropped = border & outside
+    holds = border & ~cropped if off_frame != "object" else border
+    return holds, cropped if off_frame == "abstain" else torch.zeros_like(cropped)
+
+
+def votes_needed(num_views: int, tolerate: int, off_frame: str | None = None) -> int:
+    """The masks that must hold a hull voxel: all but `tolerate`, and under "abstain" all but
+    `tolerate` of the views that see it, at least MIN_HOLDING_VIEWS (`hull_votes` counts a voxel
+    that more than `tolerate` masks leave out as -1)."""
+    need = num_views - tolerate
+    return min(need, MIN_HOLDING_VIEWS) if (off_frame or OFF_FRAME_RULE) == "abstain" else need
 
 
 @dataclass
@@ -127,24 +157,27 @@ def mask_votes(frames, points: torch.Tensor, near: float = 0.01) -> tuple[torch.
     return votes, col_sum / votes.clamp_min(1)[:, None].float()
 
 
-def hull_votes_torch(frames, points: torch.Tensor, need: int, near: float = 0.01) -> torch.Tensor:
-    """In how many frames' masks each point [N, 3] falls: [N] int, exact for every point that reaches
-    `need`. A point that has missed more masks than `need` allows is not looked up again (its count
-    stays under need), so each view projects only what is still in the running."""
+def hull_votes_torch(frames, points: torch.Tensor, tolerate: int, near: float = 0.01,
+                     off_frame: str | None = None) -> torch.Tensor:
+    """How many frames' masks hold each point [N, 3]: [N] int, -1 where more than `tolerate` masks
+    leave it out (`mask_lookup`; a frame that abstains neither holds nor leaves out). A point that
+    has been left out too often is not looked up again, so each view projects only what is still
+    in the running. A voxel is kept with `votes_needed` votes."""
     votes = torch.zeros(points.shape[0], dtype=torch.int32)
     missed = torch.zeros(points.shape[0], dtype=torch.int32)
     alive = torch.arange(points.shape[0])
     for f in frames:
-        hit = mask_lookup(f, f.mask, points[alive], near)
-        votes[alive] += hit.int()
-        missed[alive] += (~hit).int()
-        alive = alive[missed[alive] <= len(frames) - need]
-    return votes
+        holds, abstains = mask_lookup(f, f.mask, points[alive], near, off_frame)
+        votes[alive] += holds.int()
+        missed[alive] += (~holds & ~abstains).int()
+        alive = alive[missed[alive] <= tolerate]
+    return torch.where(missed > tolerate, torch.full_like(votes, -1), votes)
 
 
-def hull_votes(frames, points: torch.Tensor, need: int, near: float = 0.01) -> torch.Tensor:
+def hull_votes(frames, points: torch.Tensor, tolerate: int, near: float = 0.01,
+               off_frame: str | None = None) -> torch.Tensor:
     """`hull_votes_torch` on the CPU numba kernel (`votes_numba`): one pass over the points, each
-    projected into one view after another until it has missed too many masks."""
+    projected into one view after another until too many masks have left it out."""
     from .votes_numba import hull_votes as kernel
 
     sizes = [f.width * f.height for f in frames]
@@ -154,7 +187,7 @@ def hull_votes(frames, points: torch.Tensor, need: int, near: float = 0.01) -> t
                    np.stack([f.viewmat.detach().cpu().float().numpy() for f in frames]),
                    np.stack([f.K.detach().cpu().float().numpy() for f in frames]), masks, offsets,
                    np.array([f.width for f in frames], np.int64), np.array([f.height for f in frames], np.int64),
-                   int(need), np.float32(near))
+                   int(tolerate), OFF_FRAME.index(off_frame or OFF_FRAME_RULE), np.float32(near))
     return torch.from_numpy(votes)
 
 
@@ -171,9 +204,10 @@ HULLS_KEPT = 32
 _hulls: OrderedDict[bytes, HullGrid] = OrderedDict()
 
 
-def _hull_key(frames, resolution: int, extent: float, near: float, tolerate: int) -> bytes:
-    """Digest of everything a hull depends on: the frames' cameras and masks, and the grid."""
-    h = hashlib.blake2b(np.array([resolution, extent, near, tolerate], np.float64).tobytes(), digest_size=20)
+def _hull_key(frames, resolution: int, extent: float, near: float, tolerate: int, off_frame: str) -> bytes:
+    """Digest of everything a hull depends on: the frames' cameras and masks, the grid and the rule."""
+    h = hashlib.blake2b(np.array([resolution, extent, near, tolerate, OFF_FRAME.index(off_frame)],
+                                 np.float64).tobytes(), digest_size=20)
     for f in frames:
         h.update(np.array([f.width, f.height], np.int64).tobytes())
         for t in (f.viewmat, f.K, f.mask):
@@ -182,14 +216,16 @@ def _hull_key(frames, resolution: int, extent: float, near: float, tolerate: int
 
 
 def visual_hull_grid(frames, resolution: int = 96, extent: float = 1.0, near: float = 0.01,
-                     tolerate: int | None = None) -> HullGrid:
+                     tolerate: int | None = None, off_frame: str | None = None) -> HullGrid:
     """The hull of the frames' masks over [-extent, extent]³: a 32³ pass finds its bounding box, a
-    second carves that box at `resolution`. Returns a copy (callers may change it); raises
+    second carves that box at `resolution`. `off_frame`: what a photo says outside its frame where
+    the object runs out of it (`OFF_FRAME`). Returns a copy (callers may change it); raises
     InputError when it is empty."""
     tolerate = default_tolerance(len(frames)) if tolerate is None else tolerate
-    key = _hull_key(frames, resolution, extent, near, tolerate)
+    off_frame = off_frame or OFF_FRAME_RULE
+    key = _hull_key(frames, resolution, extent, near, tolerate, off_frame)
     if key not in _hulls:
-        _hulls[key] = _build_hull(frames, resolution, extent, near, tolerate)
+        _hulls[key] = _build_hull(frames, resolution, extent, near, tolerate, off_frame)
         while len(_hulls) > HULLS_KEPT:
             _hulls.popitem(last=False)
     _hulls.move_to_end(key)
@@ -238,9 +274,10 @@ def kept_box(votes_at, need: int, resolution: int, extent: float = 1.0):
     return lo, hi, result
 
 
-def _build_hull(frames, resolution: int, extent: float, near: float, tolerate: int) -> HullGrid:
-    need = len(frames) - tolerate
-    lo, hi, (votes,) = kept_box(lambda pts: (hull_votes(frames, pts, need, near),), need, resolution, extent)
+def _build_hull(frames, resolution: int, extent: float, near: float, tolerate: int, off_frame: str) -> HullGrid:
+    need = votes_needed(len(frames), tolerate, off_frame)
+    lo, hi, (votes,) = kept_box(lambda pts: (hull_votes(frames, pts, tolerate, near, off_frame),), need,
+                                resolution, extent)
     occ = (votes >= need).reshape(resolution, resolution, resolution)
     if not occ.any():
         raise InputError(EMPTY_HULL)

@@ -32,6 +32,7 @@ from ..scene.orbit import novel_views, sphere_views
 from ..shape.carve import carve, carve_with_volume, sure_background
 from ..shape.features import hull_channels, predict_object, silhouette_inputs
 from ..shape.hull import HullGrid, save_grid, silhouette, visual_hull_grid
+from ..shape.scores import HULL_CUT_LIMIT, hull_cut
 from ..workspace import StageRun, Workspace
 from . import StageEnv
 from .shared import background_for, coarse_members, ensemble_repair
@@ -95,8 +96,13 @@ def shape_models(scene, cfg: RepairConfig, device: torch.device) -> ShapeModels 
         return None
     try:
         grid = visual_hull_grid(scene.train, cfg.hull_resolution, tolerate=0)
+        cut = hull_cut(scene.photos, cfg.hull_resolution)
     except InputError:  # the training starts from the hull that tolerates one mask; carving needs them all
         log("repair: the training masks share no region (every mask agreeing) -> no carving")
+        return None
+    if cut > HULL_CUT_LIMIT:
+        log(f"repair: the hull of the other photos leaves out {cut:.1%} of each photo's mask (the photos crop "
+            f"the object) -> no carving, no silhouettes at the pseudo views")
         return None
     models = {k: load_model(f, device)[0] if f is not None else None for k, f in folders.items()}
     return ShapeModels(grid, models["S"], models["V"])

@@ -8,6 +8,7 @@ import torch
 
 from ..config import FineConfig
 from ..curves import test_probe, write_curve
+from ..errors import InputError
 from ..gaussians.splats import VIEWER_SH_DEGREE, Splats, export_ply, load_checkpoint, save_checkpoint, to_world
 from ..gaussians.trainer import PseudoViews, train_gaussians
 from ..io import read_json
@@ -17,6 +18,7 @@ from ..progress import log
 from ..scene.camera import Camera
 from ..scene.dataset import Frame, PreparedScene, load_prepared
 from ..shape.hull import load_grid
+from ..shape.scores import HULL_CUT_LIMIT, hull_cut
 from ..workspace import StageRun, Workspace
 from . import StageEnv
 from .shared import background_for, ensemble_repair, initial_splats, workspace_repairer
@@ -74,16 +76,28 @@ def lpips_for_training(cfg: FineConfig, device: torch.device):
     return fn, {"used": True, "weights": fn.sources}
 
 
-def start_of(cfg: FineConfig, has_masks: bool) -> str:
-    """Where G_f starts, "hull" or "coarse" (cfg.start with "auto" resolved)."""
+def start_of(cfg: FineConfig, scene: PreparedScene) -> str:
+    """Where G_f starts, "hull" or "coarse" (cfg.start with "auto" resolved): the hull where the
+    scene has masks and the hull does not cut what the photos show (`shape.scores.hull_cut`; one
+    line says so where it does), else G_c."""
     if cfg.start != "auto":
         return cfg.start
-    return "hull" if has_masks else "coarse"
+    if not scene.has_masks:
+        return "coarse"
+    try:
+        cut = hull_cut(scene.photos, cfg.hull_resolution)
+    except InputError:  # the photos' strict hull is empty: the init's tolerant hull decides
+        return "hull"
+    if cut > HULL_CUT_LIMIT:
+        log(f"fine: the hull of the other photos leaves out {cut:.1%} of each photo's mask (the photos crop the "
+            f"object) -> G_f starts from G_c, not from the hull")
+        return "coarse"
+    return "hull"
 
 
 def starting_splats(ws: Workspace, scene: PreparedScene, cfg: FineConfig, seed: int) -> tuple[Splats, str]:
     """The Gaussians the fine stage trains: the visual-hull init or G_c, and which it is."""
-    start = start_of(cfg, scene.has_masks)
+    start = start_of(cfg, scene)
     if start == "hull":
         carved = ws.output("repair", "carved_hull")
         if carved.is_file():
