@@ -39,12 +39,8 @@ def set_rule(name: str) -> None:
     rule, min_views = RULES[name]
     hull.OFF_FRAME_RULE = rule
     hull._hulls.clear()  # the process keeps hulls by their inputs, not by the rule's settings
-    if min_views is not None and min_views > 0:
+    if min_views is not None:
         hull.MIN_HOLDING_VIEWS = min_views
-        hull.votes_needed = ORIGINAL_NEED
-
-
-ORIGINAL_NEED = hull.votes_needed
 
 
 def around(scene, seed: int, n: int = 24, size: int = 128) -> list[Frame]:

@@ -101,8 +101,8 @@ def shape_models(scene, cfg: RepairConfig, device: torch.device) -> ShapeModels 
         log("repair: the training masks share no region (every mask agreeing) -> no carving")
         return None
     if cut > HULL_CUT_LIMIT:
-        log(f"repair: the hull of the other photos leaves out {cut:.1%} of each photo's mask (the photos crop "
-            f"the object) -> no carving, no silhouettes at the pseudo views")
+        log(f"repair: the hull of the other photos leaves out {cut:.1%} of each photo's mask (a mask misses part of "
+            f"the object, or the photos crop it) -> no carving, no silhouettes at the pseudo views")
         return None
     models = {k: load_model(f, device)[0] if f is not None else None for k, f in folders.items()}
     return ShapeModels(grid, models["S"], models["V"])

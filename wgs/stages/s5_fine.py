@@ -89,8 +89,8 @@ def start_of(cfg: FineConfig, scene: PreparedScene) -> str:
     except InputError:  # the photos' strict hull is empty: the init's tolerant hull decides
         return "hull"
     if cut > HULL_CUT_LIMIT:
-        log(f"fine: the hull of the other photos leaves out {cut:.1%} of each photo's mask (the photos crop the "
-            f"object) -> G_f starts from G_c, not from the hull")
+        log(f"fine: the hull of the other photos leaves out {cut:.1%} of each photo's mask (a mask misses part of the "
+            f"object, or the photos crop it) -> G_f starts from G_c, not from the hull")
         return "coarse"
     return "hull"
 
