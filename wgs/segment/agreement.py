@@ -17,19 +17,17 @@ import torch
 from ..errors import InputError
 from ..scene.camera import Camera
 from ..scene.dataset import Frame
-from ..shape.hull import HullGrid, grid_centres, kept_box, mask_lookup, silhouette, visual_hull_grid
+from ..shape.hull import HullGrid, grid_centres, kept_box, pixel_lookup, silhouette, visual_hull_grid
 
 
 def votes_per_view(cameras: list[Camera], masks: list[torch.Tensor], points: torch.Tensor
                    ) -> tuple[torch.Tensor, torch.Tensor]:
-    """For points [N, 3]: [V, N] bool, inside view v's mask, and [V, N] bool, whether view v votes
-    on the point (it abstains outside its frame where its mask runs out of it: the hull's rule,
-    `shape.hull.mask_lookup`)."""
+    """For points [N, 3]: [V, N] bool, inside view v's mask, and [V, N] bool, inside its image."""
     inside, seen = [], []
     for cam, m in zip(cameras, masks, strict=True):
-        holds, abstains = mask_lookup(cam, m, points)
-        seen.append(~abstains)
-        inside.append(holds)
+        in_img, idx = pixel_lookup(cam, points)
+        seen.append(in_img)
+        inside.append(in_img & (m.reshape(-1)[idx] > 0.5))
     return torch.stack(inside), torch.stack(seen)
 
 
@@ -46,7 +44,7 @@ def scaled(camera: Camera, longest: int) -> Camera:
 @dataclass
 class VoteGrid:
     """Every view's vote on the voxel centres of a box (normalised world): inside [V, R³] bool (in
-    the view's mask), seen [V, R³] bool (the view votes on it: `votes_per_view`)."""
+    the view's mask), seen [V, R³] bool (in its frame)."""
 
     lo: torch.Tensor
     hi: torch.Tensor
