@@ -67,9 +67,11 @@ shape-prior: $(VENV)/.installed
 	$(BIN)/python -m wgs.prior --cache $(SHAPE_CACHE) volume-pairs --workers 2
 	$(BIN)/python -m wgs.prior --cache $(SHAPE_CACHE) train-volume --steps 2000
 
-# Slow robustness checks: SIGKILL at points spread over every stage + rerun; long loader fuzzing.
+# Slow robustness checks: SIGKILL at points spread over every stage + rerun; SIGINT, SIGTERM and
+# SIGUSR1 at 10 random moments each + --resume; long loader fuzzing.
 stress: $(VENV)/.installed
 	$(BIN)/python -m wgs.stress kill-loop
+	$(BIN)/python -m wgs.stress signal-loop
 	HYPOTHESIS_PROFILE=stress $(BIN)/python -m pytest -q tests/test_fuzz_loaders.py
 
 lint: $(VENV)/.installed

@@ -207,3 +207,21 @@ def test_damaged_or_missing_prior_weights(ws, tmp_path, damage):
     before = (ws / "3_finetune/manifest.json").read_text()
     expect_error(ws.parent, wgs(ws, "finetune", "--force", "--prior", prior), "model.safetensors")
     unchanged(ws, "3_finetune", before)
+
+
+def test_wgs_reads_no_file_with_pickle_code():
+    """Every torch.load in wgs reads with weights_only=True (tensors and plain values, no code)."""
+    import ast
+    from pathlib import Path
+
+    wgs_dir = Path(__file__).resolve().parents[1] / "wgs"
+    loads = 0
+    for p in wgs_dir.rglob("*.py"):
+        assert "weights_only=False" not in p.read_text(), p
+        for node in ast.walk(ast.parse(p.read_text())):
+            if isinstance(node, ast.Call) and ast.unparse(node.func) == "torch.load":
+                loads += 1
+                flags = {k.arg: k.value for k in node.keywords}
+                assert isinstance(flags.get("weights_only"), ast.Constant) and flags["weights_only"].value is True, \
+                    f"{p}:{node.lineno}"
+    assert loads >= 2

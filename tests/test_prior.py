@@ -323,7 +323,7 @@ def test_prior_training_continues_from_its_state_and_starts_from_a_prior(tmp_pat
     torch.manual_seed(0)
     with pytest.raises(KeyboardInterrupt):
         train_d(cfg, *args, log=lambda m: saves.append(m) or (len(saves) == 1 and _interrupt()), state_path=state)
-    assert state.is_file() and torch.load(state, weights_only=False)["loop"]["step"] == 2
+    assert state.is_file() and torch.load(state, weights_only=True)["loop"]["step"] == 2
     resumed, curve, _ = train_d(cfg, *args, log=lambda m: None, state_path=state)
     assert curve["step"] == [2, 4]
     for a, b in zip(straight.state_dict().values(), resumed.state_dict().values(), strict=True):

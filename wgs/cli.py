@@ -7,6 +7,7 @@ Each stage reads and writes one workspace folder and is skipped when its inputs 
 from __future__ import annotations
 
 import errno
+import signal
 import sys
 from pathlib import Path
 
@@ -18,7 +19,7 @@ from .config import as_dict, load_config_file
 from .context import Ctx
 from .errors import WgsError
 from .progress import results, set_quiet
-from .resume import Interrupted
+from .resume import Interrupted, install_stop_handlers
 from .threads import configure as configure_threads
 from .workspace import STAGE_DIRS
 
@@ -158,11 +159,13 @@ INTERRUPTED = "interrupted: finished stages are kept; `wgs --resume ...` continu
 
 def main(argv: list[str] | None = None) -> None:
     debug = "--debug" in (argv if argv is not None else sys.argv[1:])
+    install_stop_handlers()
     try:
         cli.main(args=argv, prog_name="wgs", standalone_mode=False)
-    except (click.exceptions.Abort, KeyboardInterrupt):
+    except (click.exceptions.Abort, KeyboardInterrupt) as exc:
+        stop = exc.__cause__ if isinstance(exc, click.exceptions.Abort) else exc  # click wraps the signal's
         click.echo(INTERRUPTED, err=True)
-        sys.exit(130)
+        sys.exit(128 + getattr(stop, "signum", signal.SIGINT))
     except click.NoSuchOption as exc:
         where = global_option_hint(exc.option_name)
         if where:
@@ -177,7 +180,7 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(exc.exit_code)
     except Interrupted as exc:
         click.echo(f"interrupted: {exc}", err=True)
-        sys.exit(130)
+        sys.exit(128 + exc.signum)
     except WgsError as exc:
         if debug:
             raise

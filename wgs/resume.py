@@ -5,8 +5,11 @@ generator states, counters) to `WS/.resume/<stage>/<key>.pt` every `every_s` sec
 `wgs --resume ...` loads it and continues; the result is the one of an uninterrupted run with the
 same seed, because the same floating-point operations run in the same order.
 
-Ctrl-C inside a loop finishes the current iteration, saves a checkpoint and raises `Interrupted`;
-a second Ctrl-C stops at once (the last periodic checkpoint stays).
+A stop signal inside a loop (Ctrl-C's SIGINT, or a scheduler's SIGTERM or SIGUSR1: Slurm sends
+one at a job's time limit or preemption) finishes the current iteration, saves a checkpoint and
+raises `Interrupted`; a second one stops at once (the last periodic checkpoint stays). Outside a
+loop SIGTERM and SIGUSR1 stop at once as Ctrl-C does (`Stopped`). The CLI exits with 128 + the
+signal's number, as the shell expects (130, 143, 138).
 """
 
 from __future__ import annotations
@@ -26,7 +29,19 @@ from .io.checkpoint import UnreadableCheckpoint, read_checkpoint, write_checkpoi
 
 
 class Interrupted(WgsError):
-    """Ctrl-C inside a resumable loop: its state was saved."""
+    """A stop signal inside a resumable loop: its state was saved. `signum`: the signal."""
+
+    def __init__(self, message: str, signum: int = signal.SIGINT):
+        super().__init__(message)
+        self.signum = int(signum)
+
+
+class Stopped(KeyboardInterrupt):
+    """SIGTERM or SIGUSR1 outside a resumable loop, or a second stop signal inside one: stop at once."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = int(signum)
 
 
 class Checkpointer:
@@ -70,42 +85,74 @@ def set_rng_state(state: dict[str, Any]) -> None:
         torch.cuda.set_rng_state_all(state["cuda"])
 
 
-# ----------------------------------------------------------------------------- Ctrl-C
+# ----------------------------------------------------------------------------- stop signals
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1)
 _requested = threading.Event()
+_received: list[int] = []  # the first stop signal of the current loop
+_installed = False
 
 
 def stop_requested() -> bool:
     return _requested.is_set()
 
 
+def _stop_at_once(signum, frame):  # noqa: ARG001
+    raise Stopped(signum)
+
+
+def install_stop_handlers() -> None:
+    """SIGTERM and SIGUSR1 stop like Ctrl-C (`Stopped`), for the rest of the process (the CLI calls
+    it; SIGINT keeps Python's KeyboardInterrupt). Outside the main thread this does nothing."""
+    global _installed
+    if threading.current_thread() is not threading.main_thread():
+        return
+    for sig in STOP_SIGNALS[1:]:
+        signal.signal(sig, _stop_at_once)
+    _installed = True
+
+
+def restore_stop_handlers() -> None:
+    """Put our handlers back after a native library installed its own on import (pycolmap's glog
+    prints a native stack trace on SIGTERM); nothing where they were never installed."""
+    if _installed:
+        install_stop_handlers()
+
+
 @contextlib.contextmanager
-def deferred_sigint() -> Iterator[None]:
-    """Inside the block the first Ctrl-C only sets a flag (see `stop_requested`); the second one
-    raises KeyboardInterrupt as usual. Outside the main thread this does nothing."""
+def deferred_stop() -> Iterator[None]:
+    """Inside the block the first stop signal only sets a flag (see `stop_requested`); the second
+    one stops at once (KeyboardInterrupt for SIGINT, `Stopped` for the others). Outside the main
+    thread this does nothing."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
 
     def handler(signum, frame):  # noqa: ARG001
         if _requested.is_set():
-            raise KeyboardInterrupt
+            if signum == signal.SIGINT:
+                raise KeyboardInterrupt
+            raise Stopped(signum)
+        _received[:] = [signum]
         _requested.set()
 
-    previous = signal.signal(signal.SIGINT, handler)
+    previous = {sig: signal.signal(sig, handler) for sig in STOP_SIGNALS}
     _requested.clear()
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for sig, h in previous.items():
+            signal.signal(sig, h)
         _requested.clear()
 
 
 def check_interrupt(what: str, step: int, checkpoint: Checkpointer | None, state: Any) -> None:
-    """Call at the end of a loop iteration: on a pending Ctrl-C save `state()` and raise Interrupted."""
+    """Call at the end of a loop iteration: on a pending stop signal save `state()` and raise Interrupted."""
     if not stop_requested():
         return
+    signum = _received[0] if _received else signal.SIGINT
+    name = signal.Signals(signum).name
     if checkpoint is not None:
         checkpoint.save(state())
-        raise Interrupted(f"{what} stopped after step {step}; its state is saved: rerun the same command "
-                          "with `wgs --resume ...` to continue")
-    raise Interrupted(f"{what} stopped after step {step}; rerun to start the stage over")
+        raise Interrupted(f"{what} stopped after step {step} ({name}); its state is saved: rerun the same command "
+                          "with `wgs --resume ...` to continue", signum)
+    raise Interrupted(f"{what} stopped after step {step} ({name}); rerun to start the stage over", signum)

@@ -1,6 +1,7 @@
 """Slow robustness checks behind `make stress`.
 
     python -m wgs.stress kill-loop [--fractions 0.2,0.6,0.95] [--out DIR]
+    python -m wgs.stress signal-loop [--moments 10] [--seed 0] [--out DIR]
 
 kill-loop: runs `wgs all` on a generated scene once without interruption (the reference), then
 once per kill point: starts it in a fresh workspace, SIGKILLs it when a given stage has run for a
@@ -8,6 +9,11 @@ given fraction of its reference duration (every stage, several fractions, whatev
 speed), reruns it (alternately with --resume and without) until it finishes, and compares the
 results and the final model with the reference. A last trial kills every few seconds until the run
 gets through. Prints one line per trial and writes kill_loop.json.
+
+signal-loop: the same reference, then SIGINT, SIGTERM and SIGUSR1 (a scheduler's stop signals), each
+sent at `--moments` random moments of the run: every stopped run must print one line on stderr,
+no stack trace, and exit with 128 + the signal's number; `wgs --resume all` then finishes it, with
+results and a final model identical to the reference's. Writes signal_loop.json.
 """
 
 from __future__ import annotations
@@ -72,8 +78,16 @@ def run_until_killed(cmd: list[str], ws: Path, stage: str | None, delay_s: float
                      ) -> int | None:
     """Start `cmd`; once `stage` has started (its upstream stage finished; None: never kill) wait
     `delay_s` more and SIGKILL it. Returns the exit status, or None when it was killed."""
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    t0 = time.monotonic()
+    rc, _, sent = run_and_signal(cmd, ws, stage, delay_s, signal.SIGKILL, timeout_s)
+    return None if sent else rc
+
+
+def run_and_signal(cmd: list[str], ws: Path, stage: str | None, delay_s: float, sig: int, timeout_s: float = 1800
+                   ) -> tuple[int, str, bool]:
+    """Start `cmd`; once `stage` has started (its upstream stage finished; None: never) wait `delay_s`
+    more and send `sig`. Returns the exit status, stderr, and whether the signal was sent."""
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    t0, sent = time.monotonic(), False
     try:
         if stage is not None:
             while not stage_started(ws, stage):
@@ -83,10 +97,10 @@ def run_until_killed(cmd: list[str], ws: Path, stage: str | None, delay_s: float
             else:
                 time.sleep(delay_s)
                 if proc.poll() is None:
-                    proc.send_signal(signal.SIGKILL)
-                    proc.wait()
-                    return None
-        return proc.wait(timeout=timeout_s)
+                    proc.send_signal(sig)
+                    sent = True
+        _, err = proc.communicate(timeout=timeout_s)
+        return proc.returncode, err, sent
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -127,7 +141,9 @@ def max_param_difference(a: Path, b: Path) -> float:
     return max(float((ca[k] - cb[k]).abs().max()) for k in ca)
 
 
-def kill_loop(out: Path, fractions: list[float], checkpoint_every: float, hammer_s: float) -> dict[str, Any]:
+def reference_run(out: Path, checkpoint_every: float) -> tuple[Path, Path, Path, float, dict[str, float]]:
+    """The generated scene, the config, and `wgs all` on it uninterrupted: (scene, config, reference
+    workspace, its wall time, each stage's wall time)."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
     from make_scene import make_scene
 
@@ -139,10 +155,53 @@ def kill_loop(out: Path, fractions: list[float], checkpoint_every: float, hammer
     t0 = time.perf_counter()
     subprocess.run(wgs_command(ref, scene, cfg, False, checkpoint_every), check=True, stdout=subprocess.DEVNULL)
     total = time.perf_counter() - t0
-    expected = outcome(ref)
     stage_s = {st: Workspace(ref).manifest(st)["wall_time_s"] for st in UNASKED}
-    print(f"reference: {total:.1f} s, PSNR {expected['psnr']:.4f}; stage wall times (s): "
+    print(f"reference: {total:.1f} s, PSNR {outcome(ref)['psnr']:.4f}; stage wall times (s): "
           + ", ".join(f"{k} {v:.1f}" for k, v in stage_s.items()), flush=True)
+    return scene, cfg, ref, total, stage_s
+
+
+# what a stopped run may print instead of its one line: a Python or a native (glog) stack trace
+STACK_MARKERS = ("Traceback", "stack trace", "*** Aborted at")
+
+
+def signal_loop(out: Path, moments: int, seed: int, checkpoint_every: float) -> dict[str, Any]:
+    """SIGINT, SIGTERM and SIGUSR1 at `moments` random moments each (see the module's docstring)."""
+    import random
+
+    scene, cfg, ref, total, _ = reference_run(out, checkpoint_every)
+    expected = outcome(ref)
+    rnd = random.Random(seed)
+    trials = []
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1):
+        for m in range(moments):
+            ws = out / f"{sig.name}_{m:02d}"
+            at = rnd.uniform(0.02, 0.98) * total
+            rc, err, sent = run_and_signal(wgs_command(ws, scene, cfg, False, checkpoint_every), ws,
+                                           list(UNASKED)[0], at, sig)
+            lines = [ln for ln in err.splitlines() if ln.strip()]
+            stopped_in = running_stage(ws)
+            rc2, err2, _ = run_and_signal(wgs_command(ws, scene, cfg, True, checkpoint_every), ws, None, 0.0, sig)
+            trial = {"signal": sig.name, "at_s": round(at, 2), "stopped_in": stopped_in, "exit": rc,
+                     "expected_exit": 128 + sig if sent and stopped_in != "after eval" else 0,
+                     "stderr_lines": len(lines), "stack_trace": any(mark in err for mark in STACK_MARKERS),
+                     "resumed_exit": rc2, "same_metrics": rc2 == 0 and outcome(ws) == expected,
+                     "max_param_diff": max_param_difference(ref, ws) if rc2 == 0 else float("inf")}
+            trial["ok"] = (trial["exit"] == trial["expected_exit"] and (rc == 0 or len(lines) == 1)
+                           and not trial["stack_trace"] and trial["same_metrics"] and trial["max_param_diff"] == 0)
+            if not trial["ok"]:
+                trial["stderr"] = err[-2000:] + err2[-1000:]
+            trials.append(trial)
+            print(json.dumps(trial), flush=True)
+            shutil.rmtree(ws, ignore_errors=True)
+    summary = {"reference_seconds": round(total, 2), "trials": trials, "all_ok": all(t["ok"] for t in trials)}
+    (out / "signal_loop.json").write_text(json.dumps(summary, indent=2))
+    return summary
+
+
+def kill_loop(out: Path, fractions: list[float], checkpoint_every: float, hammer_s: float) -> dict[str, Any]:
+    scene, cfg, ref, total, stage_s = reference_run(out, checkpoint_every)
+    expected = outcome(ref)
     # every stage, killed at fractions of its reference duration after it started; then a hammer trial
     plan = [(st, f) for st in UNASKED for f in fractions] + [("hammer", hammer_s)]
     trials = []
@@ -191,8 +250,19 @@ def main(argv: list[str] | None = None) -> None:
     k.add_argument("--checkpoint-every", type=float, default=0.5)
     k.add_argument("--hammer-s", type=float, default=6.0, help="kill interval of the last trial")
     k.add_argument("--out", type=Path, default=None)
+    g = sub.add_parser("signal-loop", help="SIGINT, SIGTERM and SIGUSR1 at random moments, --resume, compare")
+    g.add_argument("--moments", type=int, default=10, help="random moments per signal")
+    g.add_argument("--seed", type=int, default=0)
+    g.add_argument("--checkpoint-every", type=float, default=0.5)
+    g.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)
     os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(".numba_cache").resolve()))
+    if args.what == "signal-loop":
+        with tempfile.TemporaryDirectory() as tmp:
+            summary = signal_loop(args.out or Path(tmp), args.moments, args.seed, args.checkpoint_every)
+        bad = [t for t in summary["trials"] if not t["ok"]]
+        print(f"{len(summary['trials'])} stops, {len(bad)} not as expected")
+        sys.exit(1 if bad else 0)
     with tempfile.TemporaryDirectory() as tmp:
         fractions = [float(x) for x in args.fractions.split(",")]
         summary = kill_loop(args.out or Path(tmp), fractions, args.checkpoint_every, args.hammer_s)

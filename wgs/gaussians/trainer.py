@@ -27,7 +27,7 @@ from ..errors import WgsError
 from ..masking import grow
 from ..metrics import ssim_map_fast
 from ..progress import progress_bar
-from ..resume import Checkpointer, check_interrupt, deferred_sigint, rng_state, set_rng_state
+from ..resume import Checkpointer, check_interrupt, deferred_stop, rng_state, set_rng_state
 from ..scene.dataset import Frame, halved
 from ..threads import adapt as adapt_threads
 from .init import floater_mask
@@ -183,7 +183,7 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
             out["strategy"] = {k: (None if v is None else v.cpu()) for k, v in state.items()}
         return out
 
-    with progress_bar(desc, cfg.iterations) as prog, deferred_sigint():
+    with progress_bar(desc, cfg.iterations) as prog, deferred_stop():
         prog.update(0, completed=it)
         if probe is not None and not curve:
             measure()

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError
-from ..io import atomic_path
+from ..io.checkpoint import UnreadableCheckpoint, read_checkpoint, write_checkpoint
 from ..models.data import random_crops, to_model
 from ..models.denoiser_meta import DenoiserMeta
 from ..models.hf_unet import HFUNet, HFUNetConfig
@@ -141,7 +141,10 @@ class StateFile:
     def load(self) -> dict | None:
         if not self.path.is_file():
             return None
-        saved = torch.load(self.path, map_location="cpu", weights_only=False)
+        try:
+            saved = read_checkpoint(self.path)
+        except UnreadableCheckpoint as exc:
+            raise InputError(f"cannot read the training state ({exc}); delete it to start over", self.path) from None
         if saved.get("config") != self.config:
             raise InputError("training state of another configuration; delete it to start over", self.path)
         return saved
@@ -150,8 +153,7 @@ class StateFile:
         return True
 
     def save(self, state: dict) -> None:
-        with atomic_path(self.path) as tmp:
-            torch.save({**state, "config": self.config}, tmp)
+        write_checkpoint(self.path, {**state, "config": self.config})
 
 
 PRIOR_D = DenoiserMeta(domain="wavelet", levels=1, start="corrupted", repair_t=0)

@@ -9,12 +9,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import pycolmap
 import torch
 
 from ..errors import InputError
 from ..io.images import IMAGE_EXTS, find_with_stem
 from .camera import Camera
+from .native_colmap import pycolmap
 from .paths import safe_join
 from .types import Distortion, RawScene, View
 

@@ -18,12 +18,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import pycolmap
 from scipy.ndimage import binary_dilation
 
 from ..errors import InputError
 from ..io.images import IMAGE_EXTS, find_with_stem, image_size, read_image, to_mask, write_png
 from ..progress import log, progress_bar
+from .native_colmap import pycolmap
 
 MATCHERS = ("auto", "exhaustive", "sequential")
 EXHAUSTIVE_UP_TO = 150  # photos; above this, sequential matching (pairs grow as n^2)

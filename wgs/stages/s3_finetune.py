@@ -24,7 +24,7 @@ from ..models.scheduler import DDIMScheduler
 from ..models.storage import load_model, save_model
 from ..prior import WEIGHTS as PRIOR_WEIGHTS
 from ..progress import progress_bar
-from ..resume import Checkpointer, check_interrupt, deferred_sigint
+from ..resume import Checkpointer, check_interrupt, deferred_stop
 from ..threads import adapt as adapt_threads
 from ..training.denoiser import train_denoiser
 from ..training.hf import train_hf
@@ -66,7 +66,7 @@ def train_scratch_d(cfg: FinetuneConfig, clean: torch.Tensor, bad: torch.Tensor,
         idx = torch.randint(clean.shape[0], (cfg.d_batch,), generator=gen)
         return tuple(t.to(device) for t in random_crops([clean, bad], idx, cfg.d_crop, gen))
 
-    with progress_bar("finetune D", cfg.d_steps) as prog, deferred_sigint():
+    with progress_bar("finetune D", cfg.d_steps) as prog, deferred_stop():
         model, st = train_denoiser(model, meta, batch, plan, gen, opt, name="finetune D",
                                    on_record=progress(prog, lambda st: f"loss {st.curve['loss'][-1]:.4f}"),
                                    **resumable("finetune D", checkpoint))
@@ -112,7 +112,7 @@ def train_hf_unet(cfg: FinetuneConfig, renders: torch.Tensor, refs: torch.Tensor
         idx = train_ids[torch.randint(len(train_ids), (cfg.u_batch,), generator=gen)]
         return tuple(t.to(device) for t in random_crops([renders, refs], idx, 2 * cfg.u_crop, gen, align=2))
 
-    with progress_bar("finetune U", cfg.u_max_steps) as prog, deferred_sigint():
+    with progress_bar("finetune U", cfg.u_max_steps) as prog, deferred_stop():
         model, st, identity = train_hf(model, batch, plan, gen, opt, tuple(t.to(device) for t in held),
                                        start_is_bar=True, name="finetune U",
                                        on_record=progress(prog, lambda st: f"val L1 {st.curve['val'][-1]:.5f}"),
