@@ -225,6 +225,29 @@ def expect_error(cwd: Path, args, *needles: str, code: int = 2) -> str:
     return lines[0]
 
 
+def generated_frames(obj, eyes: dict[str, list[np.ndarray]], size: int) -> dict[str, list]:
+    """make_scene's object `obj` rendered from camera positions (world, looking at the origin) per
+    split: {split: [Frame with image and mask]} in the normalised world of the "train" cameras."""
+    import make_scene as ms
+    import torch
+
+    from wgs.scene.convention import c2w_opengl_to_w2c_opencv, focal_from_fov, normalisation_from_cameras
+    from wgs.scene.dataset import Frame
+
+    w2cs = {k: [c2w_opengl_to_w2c_opencv(ms.look_at_c2w(e)) for e in v] for k, v in eyes.items()}
+    norm = normalisation_from_cameras(w2cs["train"])
+    f = focal_from_fov(ms.FOV_X, size)
+    K = torch.tensor([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1]], dtype=torch.float32)
+    out = {}
+    for k, v in eyes.items():
+        out[k] = []
+        for i, eye in enumerate(v):
+            rgba = torch.from_numpy(ms.render(obj, ms.look_at_c2w(eye), size).astype(np.float32))
+            w2c = torch.tensor(norm.w2c_to_normalised(w2cs[k][i]), dtype=torch.float32)
+            out[k].append(Frame(K, w2c, size, size, name=f"{k}_{i}.png", image=rgba[..., :3], mask=rgba[..., 3]))
+    return out
+
+
 def ring_w2c(n=4, radius=1.0, height=0.3, jitter=0.0, seed=0):
     """World-to-camera matrices of n cameras on a ring looking at the origin."""
     rng = np.random.default_rng(seed)

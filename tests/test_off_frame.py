@@ -10,12 +10,12 @@ import make_scene
 import numpy as np
 import pytest
 import torch
+from conftest import generated_frames
 
 import wgs.shape.hull as hull
 from wgs.config import FineConfig, resolve
 from wgs.gaussians.trainer import render_frame, train_gaussians
 from wgs.metrics import psnr
-from wgs.scene.convention import c2w_opengl_to_w2c_opencv, focal_from_fov, normalisation_from_cameras
 from wgs.scene.dataset import Frame, PreparedScene, composite
 from wgs.shape.scores import HULL_CUT_LIMIT, hull_cut, mean_scores, silhouette_scores
 from wgs.stages.s5_fine import start_of
@@ -35,18 +35,7 @@ def close_up(seed: int, n_around: int = 0):
     eyes["around"] = [make_scene.STAND_BACK_DISTANCE * np.array(
         [math.sqrt(1 - z * z) * math.cos(i * golden), math.sqrt(1 - z * z) * math.sin(i * golden), z])
         for i, z in enumerate(1 - 2 * (np.arange(n_around) + 0.5) / max(n_around, 1))]
-    w2cs = {k: [c2w_opengl_to_w2c_opencv(make_scene.look_at_c2w(e)) for e in v] for k, v in eyes.items()}
-    norm = normalisation_from_cameras(w2cs["train"])
-    f = focal_from_fov(make_scene.FOV_X, SIZE)
-    K = torch.tensor([[f, 0, SIZE / 2], [0, f, SIZE / 2], [0, 0, 1]], dtype=torch.float32)
-    out = {}
-    for k, v in eyes.items():
-        frames = []
-        for i, eye in enumerate(v):
-            rgba = torch.from_numpy(make_scene.render(parts, make_scene.look_at_c2w(eye), SIZE).astype(np.float32))
-            w2c = torch.tensor(norm.w2c_to_normalised(w2cs[k][i]), dtype=torch.float32)
-            frames.append(Frame(K, w2c, SIZE, SIZE, name=f"{k}_{i}.png", image=rgba[..., :3], mask=rgba[..., 3]))
-        out[k] = frames
+    out = generated_frames(parts, eyes, SIZE)
     return out["train"], out["test"], out["around"]
 
 

@@ -33,13 +33,14 @@ class Row:
     levels: int = 1
     prior: str = "none"  # the paper's rows train D from scratch; the prior row starts from the shipped prior
     carve: bool = False  # V and S carve the hull (not in the paper; the product's default)
+    own_shape: bool = False  # the hull shrunk by what the photos' masks allow (shape.own_shape; the product's default)
     label: dict[str, bool] = field(default_factory=dict)
 
     def overrides(self) -> dict[str, dict[str, Any]]:
         """The row's settings, per config table."""
         return {"mask_data": {"strategy": self.strategy},
                 "finetune": {"domain": self.domain, "use_u": self.use_u, "levels": self.levels, "prior": self.prior},
-                "repair": {"carve": self.carve}}
+                "repair": {"carve": self.carve, "shape_revolution": self.own_shape, "shape_smooth": self.own_shape}}
 
 
 ROWS: dict[str, Row] = {r.name: r for r in (
@@ -50,11 +51,12 @@ ROWS: dict[str, Row] = {r.name: r for r in (
     Row("orm-wavelet-u", "orm", "wavelet", use_u=True),
     Row("orm-wavelet-u-prior", "orm", "wavelet", use_u=True, prior="builtin"),
     Row("orm-wavelet-u-prior-carve", "orm", "wavelet", use_u=True, prior="builtin", carve=True),
+    Row("orm-wavelet-u-prior-carve-shape", "orm", "wavelet", use_u=True, prior="builtin", carve=True, own_shape=True),
     Row("3dgs", None),
     Row("orm-wavelet-u-j2", "orm", "wavelet", use_u=True, levels=2),
 )}
 PAPER_ROWS = ("loo-rgb", "offline-rgb", "orm-rgb", "orm-wavelet", "orm-wavelet-u", "orm-wavelet-u-prior",
-              "orm-wavelet-u-prior-carve", "3dgs")
+              "orm-wavelet-u-prior-carve", "orm-wavelet-u-prior-carve-shape", "3dgs")
 TIME_OF = "orm-wavelet-u-prior"  # plain 3DGS gets the time of the full method (wgs all's default)
 TABLE_OF = {s.name: s.table for s in REGISTRY}
 # a row's own stages (what runs only on request, the plain-3DGS baseline, is its own row)

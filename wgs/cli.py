@@ -40,6 +40,7 @@ Quick start:
   wgs -w my_ws info                  # what the workspace holds
   wgs -w my_ws render --views path   # an orbit of the final model
   wgs -w my_ws view                  # the model in the browser (WebGL, localhost)
+  wgs -w my_ws suggest               # where one more photo would help the shape most
 """
 
 
@@ -138,6 +139,38 @@ def info(obj: Ctx) -> None:
     t = describe()
     results.print(f"threads: torch {t['torch_threads']}, numba {t['numba_threads']} ({t['numba_layer']}) "
                   f"on {t['cores']} available core(s), {'adaptive' if t['adaptive'] else 'fixed'}")
+
+
+@cli.command()
+@click.option("--resolution", type=click.IntRange(min=16), default=64, show_default=True,
+              help="Voxels along the hull's box.")
+@workspace_option
+@click.pass_obj
+def suggest(obj: Ctx, resolution: int) -> None:
+    """Say where one more photo would bound most of the shape that no photo bounds now (after
+    `wgs prepare`; the scene needs masks): a sentence, and a preview from there in WS/suggest/."""
+    from .io import atomic_write_json
+    from .io.images import write_png
+    from .progress import results
+    from .scene.dataset import load_prepared
+    from .shape.hull import visual_hull_grid
+    from .shape.next_view import preview, suggest_view
+
+    ws = obj.ws()
+    if ws.status("scene") == "missing":
+        raise WgsError("no prepared scene: run `wgs prepare SCENE` first", ws.root)
+    scene = load_prepared(ws.output("scene", "prepared"))
+    if not scene.has_masks:
+        raise WgsError("the scene has no masks, and the shape that photos bound comes from masks", ws.root)
+    hull = visual_hull_grid(scene.train, resolution, tolerate=0)
+    record = suggest_view(hull, scene.photos)
+    out = ws.root / "suggest"
+    write_png(out / "preview.png", preview(hull, record))
+    camera = record.pop("camera")
+    atomic_write_json(out / "suggestion.json", {**record, "camera": camera.to_json()})
+    results.print(f"suggest: one more photo {record['sentence']}: it would bound {record['bounds']:.0%} of the "
+                  f"shape no photo bounds now (a median direction: {record['median_bounds']:.0%}); preview "
+                  f"{out / 'preview.png'}", soft_wrap=True)
 
 
 def _register_stages() -> None:

@@ -67,6 +67,9 @@ MEANING: dict[str, str] = {
     "steps": "DDIM steps of a from-scratch D's repair.",
     "views_per_train": "Novel viewpoints per training view (arc poses).",
     "carve": "The volume model V and the silhouette model S carve the visual hull.",
+    "shape_revolution": "Shrink the visual hull to the largest solid of revolution inside it where the photos' "
+                        "masks allow it (bottles, vases, cups).",
+    "shape_smooth": "Round off the visual hull's corners at the largest radius the photos' masks allow.",
     # fine
     "rounds": "Rounds of repair + refinement: each later one repairs the refined model's renders again.",
     "start": "Train G_f from the visual hull or from G_c (auto: the hull when the scene has masks).",

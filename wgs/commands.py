@@ -17,7 +17,8 @@ ALL_FIELDS: dict[str, tuple[str, ...]] = {
     "mirror": ("prepare",),
     "ensemble": ("coarse",),
     "strategy": ("mask_data",), "domain": ("finetune",), "use_u": ("finetune",), "prior": ("finetune",),
-    "carve": ("repair",), "lpips_weights": ("fine", "eval")}
+    "carve": ("repair",), "shape_revolution": ("repair",), "shape_smooth": ("repair",),
+    "lpips_weights": ("fine", "eval")}
 
 
 def all_options(f):
@@ -67,7 +68,8 @@ def register(cli, stage_common, workspace_option) -> None:
         obj.run_stage("finetune", obj.config("finetune", preset, **options), force)
 
     @cli.command()
-    @config_options("repair", "poses", "num_views", "strength", "steps", "views_per_train", "carve")
+    @config_options("repair", "poses", "num_views", "strength", "steps", "views_per_train", "carve",
+                    "shape_revolution", "shape_smooth")
     @stage_common
     @click.pass_obj
     def repair(obj, force, preset, **options):

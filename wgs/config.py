@@ -21,6 +21,7 @@ except ModuleNotFoundError:  # Python 3.10
 from .errors import InputError
 from .gaussians.strategy import DensifyParams
 from .shape.carve import CarveParams
+from .shape.own_shape import OwnShapeParams
 
 
 @dataclass
@@ -169,9 +170,10 @@ class FinetuneConfig:
 
 
 @dataclass
-class RepairConfig(CarveParams):
-    """Pseudo references at novel poses, and the carving of the visual hull by the volume model V and
-    the silhouette model S (the thresholds come from `shape.carve.CarveParams`)."""
+class RepairConfig(OwnShapeParams, CarveParams):
+    """Pseudo references at novel poses, the visual hull shrunk by what the photos' masks allow
+    (`shape.own_shape.OwnShapeParams`), and its carving by the volume model V and the silhouette
+    model S (the thresholds come from `shape.carve.CarveParams`)."""
 
     poses: str = "sphere"  # sphere: a Fibonacci band over the view sphere; arc: between neighbouring training views
     num_views: int = 24  # sphere: pseudo views in all
@@ -431,6 +433,7 @@ RANGES: dict[str, tuple[float, float | None]] = {"views": (2, None), "downscale"
                                                  "mask_colour_ratio": (0.0, None),
                                                  "mask_max_cut": (0.0, 1.0), "mirror_directions": (1, None),
                                                  "mirror_max_missed": (0.0, 1.0), "outline_margin_px": (0, None),
+                                                 "shape_max_missed": (0.0, 1.0),
                                                  "half_size_until": (0.0, 1.0), "prior_steps": (0, None)}
 
 

@@ -32,6 +32,8 @@ from ..scene.orbit import novel_views, sphere_views
 from ..shape.carve import carve, carve_with_volume, sure_background
 from ..shape.features import hull_channels, predict_object, silhouette_inputs
 from ..shape.hull import HullGrid, save_grid, silhouette, visual_hull_grid
+from ..shape.own_shape import describe as describe_own_shape
+from ..shape.own_shape import own_shape
 from ..shape.scores import HULL_CUT_LIMIT, hull_cut
 from ..workspace import StageRun, Workspace
 from . import StageEnv
@@ -84,14 +86,15 @@ def carving_fingerprint(cfg: RepairConfig) -> dict[str, str | None]:
 
 def shape_models(scene, cfg: RepairConfig, device: torch.device) -> ShapeModels | None:
     """The hull and the models that carve it, or None (with one line) where the scene does not need
-    or allow carving."""
-    if not cfg.carve:
+    or allow shaping the hull."""
+    own = cfg.shape_revolution or cfg.shape_smooth
+    if not (cfg.carve or own):
         return None
     if not scene.has_masks:
         log("repair: no masks -> no visual hull, no carving")
         return None
     folders = carving_folders(cfg)
-    if all(f is None for f in folders.values()):
+    if not own and all(f is None for f in folders.values()):
         log("repair: no shipped silhouette or volume model -> no carving")
         return None
     try:
@@ -108,10 +111,14 @@ def shape_models(scene, cfg: RepairConfig, device: torch.device) -> ShapeModels 
     return ShapeModels(grid, models["S"], models["V"])
 
 
-def carve_hull(shape: ShapeModels, frames: list, cfg: RepairConfig, run: StageRun) -> HullGrid:
-    """The strict hull carved by V where the object's own leave-one-out silhouettes back it (the
-    record goes to the stage's manifest)."""
-    hull = shape.grid
+def carve_hull(shape: ShapeModels, scene, cfg: RepairConfig, run: StageRun) -> HullGrid:
+    """The strict hull shrunk by what the photos' masks allow (`shape.own_shape`), then carved by V
+    where the object's own leave-one-out silhouettes back it (the records go to the stage's manifest)."""
+    hull, frames = shape.grid, scene.train
+    if cfg.shape_revolution or cfg.shape_smooth:
+        hull, record = own_shape(hull, scene.photos, cfg)
+        run.record["own_shape"] = record
+        log(f"repair: {describe_own_shape(record)}")
     if shape.volume_model is not None:
         hull, record = carve_with_volume(shape.volume_model, frames, hull, cfg, cfg.hull_resolution)
         run.record["volume_carving"] = record
@@ -148,7 +155,7 @@ def repair_views(run: StageRun, ws: Workspace, cfg: RepairConfig, device: torch.
         views = novel_views(scene.train, per_pair, cfg.arc_min, cfg.arc_max, seed)
     bg = background_for(scene)
     shape = shape_models(scene, cfg, device)
-    hull = carve_hull(shape, scene.train, cfg, run) if shape is not None else None
+    hull = carve_hull(shape, scene, cfg, run) if shape is not None else None
     use_s = shape is not None and shape.silhouette_model is not None
     listing, rows, probs = [], [], []
     d_max = max(d for _, d in views)

@@ -26,6 +26,7 @@ from ..report_html import outline_sheet
 from ..scene.dataset import Frame, composite, load_prepared
 from ..scene.orbit import orbit_frames
 from ..shape.hull import HullGrid, load_grid, silhouette, visual_hull_grid
+from ..shape.own_shape import describe as describe_own_shape
 from ..shape.scores import SILHOUETTE_DOC, leave_one_out, mean_scores, silhouette_scores
 from ..workspace import StageRun, Workspace
 from . import StageEnv
@@ -183,6 +184,8 @@ def shape_line(coarse: dict, fine: dict, shape: dict) -> str:
                  f"{taught if mirror['used'] else ''} "
                  f"(leave-one-out IoU {mirror['leave_one_out_iou']:.3f} -> {mirror['leave_one_out_iou_mirrored']:.3f}"
                  " with the mirror)")
+    if shape.get("own_shape"):
+        head += f"; the hull shaped by the photos' masks: {describe_own_shape(shape['own_shape'])}"
     return head
 
 
@@ -374,6 +377,7 @@ def evaluate(run: StageRun, ws: Workspace, cfg: EvalConfig, device: torch.device
         per_view = ("hull_test", "carved_hull_test", "leave_one_out")
         atomic_write_json(run.path("per_view_shape.json"), {k: shape.pop(f"{k}_per_view") for k in per_view})
         shape["mirror"] = scene.info.get("mirror")
+        shape["own_shape"] = (ws.manifest("repair") or {}).get("own_shape")
     res = {**results["fine"], "final_model": final, "coarse": results["coarse"],
            "baseline_3dgs": results.get("baseline_3dgs"),
            "repair_gain": gain, "shape": shape, "masks_note": masks_note(scene),
