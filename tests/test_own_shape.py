@@ -13,7 +13,7 @@ import torch
 from conftest import generated_frames, run_cli
 
 from wgs.shape.hull import box_rays, march, silhouette, visual_hull_grid
-from wgs.shape.next_view import describe_direction, suggest_view
+from wgs.shape.next_view import describe_direction, loose_voxels, suggest_view
 from wgs.shape.opening import opening
 from wgs.shape.own_shape import OwnShapeParams, own_shape
 from wgs.shape.revolution import revolved, rotation_matrices, spread_order
@@ -120,7 +120,7 @@ def test_a_ball_is_its_own_revolution_and_opening():
 
 def test_the_suggested_photo_bounds_more_than_the_median_direction():
     views, hull, _, _ = shaped("vase")
-    record = suggest_view(hull, views["train"], candidates=40)
+    record = suggest_view(*loose_voxels(hull), views["train"], candidates=40)
     assert record["bounds"] > record["median_bounds"]
     assert "photo train_" in record["sentence"] or "above" in record["sentence"]
 

@@ -154,7 +154,7 @@ def suggest(obj: Ctx, resolution: int) -> None:
     from .progress import results
     from .scene.dataset import load_prepared
     from .shape.hull import visual_hull_grid
-    from .shape.next_view import preview, suggest_view
+    from .shape.next_view import loose_voxels, preview, suggest_view
 
     ws = obj.ws()
     if ws.status("scene") == "missing":
@@ -163,9 +163,10 @@ def suggest(obj: Ctx, resolution: int) -> None:
     if not scene.has_masks:
         raise WgsError("the scene has no masks, and the shape that photos bound comes from masks", ws.root)
     hull = visual_hull_grid(scene.train, resolution, tolerate=0)
-    record = suggest_view(hull, scene.photos)
+    core, loose = loose_voxels(hull)
+    record = suggest_view(core, loose, scene.photos)
     out = ws.root / "suggest"
-    write_png(out / "preview.png", preview(hull, record))
+    write_png(out / "preview.png", preview(hull, core, loose, record["camera"]))
     camera = record.pop("camera")
     atomic_write_json(out / "suggestion.json", {**record, "camera": camera.to_json()})
     results.print(f"suggest: one more photo {record['sentence']}: it would bound {record['bounds']:.0%} of the "

@@ -32,7 +32,7 @@ from wgs.scene.convention import GL_TO_CV, invert_rigid  # noqa: E402
 from wgs.scene.dataset import composite, load_prepared  # noqa: E402
 from wgs.scene.orbit import sphere_views  # noqa: E402
 from wgs.shape.hull import silhouette, visual_hull_grid  # noqa: E402
-from wgs.shape.next_view import ABOVE_DEG, BELOW_DEG, CANDIDATES, suggest_view  # noqa: E402
+from wgs.shape.next_view import ABOVE_DEG, BELOW_DEG, CANDIDATES, loose_voxels, suggest_view  # noqa: E402
 from wgs.shape.scores import silhouette_scores  # noqa: E402
 from wgs.stages.shared import background_for  # noqa: E402
 from wgs.workspace import Workspace  # noqa: E402
@@ -94,7 +94,7 @@ if __name__ == "__main__":
         if not (ws4 / "0_scene").is_dir():
             wgs("-w", str(ws4), "prepare", str(base), "--mirror", "none")
         scene = load_prepared(Workspace(ws4).output("scene", "prepared"))
-        record = suggest_view(visual_hull_grid(scene.train, 64, tolerate=0), scene.photos)
+        record = suggest_view(*loose_voxels(visual_hull_grid(scene.train, 64, tolerate=0)), scene.photos)
         pool = [f for f, _ in sphere_views(scene.photos, CANDIDATES, BELOW_DEG, ABOVE_DEG)]
         picks = random.Random(a.seed).sample(range(len(pool)), a.random)
         best = scores(with_fifth(base, a.out / f"{kind}_suggested", obj, record["camera"], scene.norm),

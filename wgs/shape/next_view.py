@@ -71,10 +71,10 @@ def describe_direction(camera, photos) -> tuple[str, dict]:
                               "turn_deg": round(turn, 1), "rise_deg": round(rise, 1)}
 
 
-def suggest_view(hull: HullGrid, photos, candidates: int = CANDIDATES) -> dict:
-    """The candidate camera that would bound the most loose voxels: a record with the camera, the
-    share of loose voxels it bounds (and the median candidate's), the sentence and its numbers."""
-    core, loose = loose_voxels(hull)
+def suggest_view(core: HullGrid, loose: torch.Tensor, photos, candidates: int = CANDIDATES) -> dict:
+    """The candidate camera that would bound the most loose voxels (`loose_voxels`: the hull's core
+    and the centres [N, 3] outside it): a record with the camera, the share of loose voxels it
+    bounds (and the median candidate's), the sentence and its numbers."""
     views = [f for f, _ in sphere_views(photos, candidates, BELOW_DEG, ABOVE_DEG)]
     counts = [int(bounded_by(core, loose, f).sum()) for f in views] if loose.shape[0] else [0] * len(views)
     best = int(np.argmax(counts))
@@ -84,10 +84,9 @@ def suggest_view(hull: HullGrid, photos, candidates: int = CANDIDATES) -> dict:
             "loose_voxels": int(loose.shape[0]), "sentence": sentence, **numbers}
 
 
-def preview(hull: HullGrid, record: dict) -> np.ndarray:
-    """[H, W, 3] float: the hull seen from the suggested camera, shaded by depth, with the loose voxels
-    that camera would bound in red."""
-    camera = record["camera"]
+def preview(hull: HullGrid, core: HullGrid, loose: torch.Tensor, camera) -> np.ndarray:
+    """[H, W, 3] float: the hull seen from `camera`, shaded by depth, with the loose voxels
+    (`loose_voxels`) that camera would bound in red."""
     cover, depth = silhouette(hull, camera)
     d = depth[cover]
     shade = torch.zeros(camera.height, camera.width)
@@ -95,7 +94,6 @@ def preview(hull: HullGrid, record: dict) -> np.ndarray:
         shade[cover] = 0.9 - 0.6 * (depth[cover] - d.min()) / (d.max() - d.min()).clamp_min(1e-6)
     img = torch.ones(camera.height, camera.width, 3)
     img[cover] = shade[cover][:, None].expand(-1, 3)
-    core, loose = loose_voxels(hull)
     if loose.shape[0]:
         hit = bounded_by(core, loose, camera)
         _, idx = pixel_lookup(camera, loose[hit])
