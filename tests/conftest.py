@@ -31,6 +31,7 @@ else:
 # No LPIPS weights in the tests, whatever this machine holds (tests that want them bring their own):
 # results then say "lpips": null and why, the same everywhere.
 os.environ["TORCH_HOME"] = tempfile.mkdtemp(prefix="wgs-tests-torch-home-")
+os.environ["WGS_CACHE"] = tempfile.mkdtemp(prefix="wgs-tests-cache-")  # one run-time calibration for the suite
 os.environ.pop("WGS_LPIPS_WEIGHTS", None)
 
 # The smallest config that runs every stage (seconds per `wgs all` on a 48-64 px scene).

@@ -195,10 +195,12 @@ def test_failed_prepare_keeps_previous_workspace(scene_copy, tmp_path):
     ok = run_cli(prep(scene_copy, tmp_path), tmp_path)
     assert ok.returncode == 0, ok.stderr
     manifest = (tmp_path / "ws" / "scene" / "manifest.json").read_text()
+    run_record = (tmp_path / "ws" / "run.json").read_text()  # the estimate printed after it
     (scene_copy / "train" / "r_1.png").write_bytes(b"broken")
     expect_error(tmp_path, prep(scene_copy, tmp_path), "r_1.png")
     assert (tmp_path / "ws" / "scene" / "manifest.json").read_text() == manifest
-    assert sorted(p.name for p in (tmp_path / "ws").iterdir()) == ["scene"]
+    assert (tmp_path / "ws" / "run.json").read_text() == run_record
+    assert sorted(p.name for p in (tmp_path / "ws").iterdir()) == ["run.json", "scene"]
 
 
 def test_info_without_workspace(tmp_path):

@@ -5,10 +5,10 @@ import math
 import pytest
 import torch
 
-from wgs.bench import random_scene
 from wgs.gaussians.project import project_gaussians, quat_to_rotmat
 from wgs.gaussians.raster_torch import rasterize_pixels_torch
 from wgs.gaussians.render import rasterize
+from wgs.gaussians.synthetic import random_scene
 
 
 def camera(size, f=None, dtype=torch.float32):

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .config import METHOD, REGISTRY, stages_through
+from .config import METHOD, REGISTRY, TABLE_OF, stages_through
 from .errors import InputError
 from .io import atomic_write_bytes, atomic_write_json, read_json
 from .progress import fmt, log
@@ -58,7 +58,6 @@ ROWS: dict[str, Row] = {r.name: r for r in (
 PAPER_ROWS = ("loo-rgb", "offline-rgb", "orm-rgb", "orm-wavelet", "orm-wavelet-u", "orm-wavelet-u-prior",
               "orm-wavelet-u-prior-carve", "orm-wavelet-u-prior-carve-shape", "3dgs")
 TIME_OF = "orm-wavelet-u-prior"  # plain 3DGS gets the time of the full method (wgs all's default)
-TABLE_OF = {s.name: s.table for s in REGISTRY}
 # a row's own stages (what runs only on request, the plain-3DGS baseline, is its own row)
 AFTER_PAIRS = tuple(s.name for s in REGISTRY if s.name not in stages_through("mask_data") and not s.on_request)
 
@@ -93,14 +92,17 @@ def row_times(ws: Workspace) -> dict[str, float]:
 
 def run_ablation(ctx, scene_dir: Path, root: Path, rows: list[Row], repeats: int, preset: str | None,
                  prepare_overrides: dict[str, Any]) -> list[dict[str, Any]]:
+    from .estimate import RunTiming
     from .stages import run_stage
 
     device = ctx.torch_device()
+    # the working size chosen for the machine where the options do not set it (one prepare for every row)
+    working_size = RunTiming(device, ctx.configs(preset))
     records: list[dict[str, Any]] = []
     for rep in range(repeats):
         seed = ctx.seed + rep
         base = root / f"repeat{rep}" if repeats > 1 else root
-        env = ctx.env(device, seed=seed, scene_dir=scene_dir)
+        env = ctx.env(device, seed=seed, scene_dir=scene_dir, working_size=working_size)
 
         def workspace(name: str, base: Path = base) -> Workspace:
             return Workspace(base / name, resume=ctx.resume, checkpoint_every=ctx.checkpoint_every)

@@ -21,47 +21,11 @@ from pathlib import Path
 
 import torch
 
-from .gaussians.render import rasterize
+from .gaussians.synthetic import time_backend
 from .scene.dataset import load_prepared
 from .workspace import STAGE_DIRS, Workspace, peak_memory_mb
 
 CASES = ((128, 10_000), (256, 50_000))
-
-
-def random_scene(n: int, size: int, seed: int = 0, dtype=torch.float32):
-    """n Gaussians in a ball seen by one camera at distance 2.5 (footprints ~2-30 px)."""
-    g = torch.Generator().manual_seed(seed)
-    means = torch.randn(n, 3, generator=g, dtype=dtype) * 0.4
-    quats = torch.randn(n, 4, generator=g, dtype=dtype)
-    scales = torch.exp(torch.randn(n, 3, generator=g, dtype=dtype) * 0.5 - 4.0)
-    opac = torch.rand(n, generator=g, dtype=dtype) * 0.9 + 0.05
-    colors = torch.rand(n, 3, generator=g, dtype=dtype)
-    viewmat = torch.eye(4, dtype=dtype)
-    viewmat[2, 3] = 2.5
-    f = size * 1.2
-    K = torch.tensor([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1]], dtype=dtype)
-    return means, quats, scales, opac, colors, viewmat, K
-
-
-def time_backend(backend: str, size: int, n: int, repeats: int) -> dict:
-    scene = random_scene(n, size)
-    weights = torch.rand(size, size, 3, generator=torch.Generator().manual_seed(1))
-    fwd, both = [], []
-    for i in range(repeats + 1):  # the first run warms up (numba loads its cache)
-        params = [t.detach().clone().requires_grad_(True) for t in scene[:5]]
-        t0 = time.perf_counter()
-        rgb, alpha, _ = rasterize(*params, scene[5], scene[6], size, size, backend=backend)
-        t1 = time.perf_counter()
-        ((rgb * weights).sum() + alpha.sum()).backward()
-        t2 = time.perf_counter()
-        if i:
-            fwd.append(t1 - t0)
-            both.append(t2 - t0)
-
-    def stats(xs):
-        return {"median_s": statistics.median(xs), "min_s": min(xs), "max_s": max(xs)}
-
-    return {"forward": stats(fwd), "forward_backward": stats(both), "repeats": repeats}
 
 
 def bench_rasterizer(repeats: int, ref_repeats: int) -> dict:

@@ -95,14 +95,16 @@ def stage_common(f):
 
 @cli.command()
 @click.argument("scene", type=click.Path(path_type=Path))
-@config_options("prepare", "views", "downscale", "max_pixels", "matcher", "masks", "mask_agreement",
+@config_options("prepare", "views", "downscale", "max_size", "max_pixels", "matcher", "masks", "mask_agreement",
                 "mask_voter_support", "mask_colour_ratio", "mask_max_cut", "mask_max_missed", "mirror")
 @stage_common
 @click.pass_obj
 def prepare(obj: Ctx, scene: Path, force, preset, **options) -> None:
     """Import SCENE (COLMAP, Blender, instant-ngp/nerfstudio, IDR, LLFF, or photos without poses,
     which structure-from-motion poses) into the workspace."""
-    obj.run_stage("scene", obj.config("prepare", preset, **options), force, scene_dir=scene)
+    from .pipeline import prepare_and_estimate
+
+    prepare_and_estimate(obj, scene, preset, options, force)
 
 
 @cli.command()

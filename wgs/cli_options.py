@@ -15,14 +15,18 @@ from typing import Any
 
 import click
 
-from .config import CHOICES, PRESETS, RANGES, STAGES, field_types
+from .config import CHOICES, CPU_TARGET_S, GPU_MAX_SIZE, PRESETS, RANGES, STAGES, field_types
 
 # what each offered field means, in the words of the command line
 MEANING: dict[str, str] = {
     # prepare
     "views": "Number of training views, spread over the viewing directions or from sparse_N.txt "
              "(not given: every training view of the dataset).",
-    "downscale": "Integer image downscale factor (uses images_K/ if present).",
+    "downscale": "Integer image downscale factor (uses images_K/ if present; not given: the working size "
+                 "chosen for the machine, see --max-size).",
+    "max_size": "Downscale the photos by the smallest integer factor that brings their long side to at most this "
+                f"many pixels (not given: {GPU_MAX_SIZE} on a GPU, on a CPU the largest size at which wgs all is "
+                f"modelled to take about {CPU_TARGET_S / 60:.0f} minutes there).",
     "max_pixels": "Refuse images larger than this many pixels.",
     "matcher": "Photos without poses: feature matching for structure-from-motion "
                "(auto: exhaustive up to 150 photos, else sequential by name).",

@@ -13,7 +13,8 @@ from .progress import log
 
 # `wgs all`'s own options: config field -> the stage tables it sets
 ALL_FIELDS: dict[str, tuple[str, ...]] = {
-    "views": ("prepare",), "downscale": ("prepare",), "matcher": ("prepare",), "masks": ("prepare",),
+    "views": ("prepare",), "downscale": ("prepare",), "max_size": ("prepare",), "matcher": ("prepare",),
+    "masks": ("prepare",),
     "mirror": ("prepare",),
     "ensemble": ("coarse",),
     "strategy": ("mask_data",), "domain": ("finetune",), "use_u": ("finetune",), "prior": ("finetune",),
@@ -105,12 +106,15 @@ def register(cli, stage_common, workspace_option) -> None:
     @cli.command("all")
     @click.argument("scene", type=click.Path(path_type=Path))
     @all_options
+    @click.option("--budget", default=None,
+                  help="A time budget for the run, such as 10m, 90s or 1h (a bare number is minutes; also [all] "
+                       "budget): the working size and the training stages' time are chosen to end within it.")
     @click.option("--force-repair", is_flag=True, help="Run the repair stages even with many training views.")
     @click.option("--baseline", "baseline", is_flag=True,
                   help="Also train plain 3DGS for the same training time and plot its curve (wgs baseline).")
     @stage_common
     @click.pass_obj
-    def all_(obj, scene, force_repair, baseline, force, preset, **options):
+    def all_(obj, scene, budget, force_repair, baseline, force, preset, **options):
         """Run every stage on SCENE (each skipped when up to date) and print the summary."""
         from .pipeline import print_summary, run_all
 
@@ -120,8 +124,11 @@ def register(cli, stage_common, workspace_option) -> None:
                 raise WgsError("no workspace name for the root folder: pass -w/--workspace DIR")
             obj.workspace = scene.with_name(scene.name + "_wgs")
             log(f"workspace: {obj.workspace}")
+        from .estimate import parse_duration
+
+        budget = budget or obj.file_cfg.get("all", {}).get("budget")
         outcomes = run_all(obj, scene, preset, force, force_repair, all_overrides(options),
-                           ("baseline",) if baseline else ())
+                           ("baseline",) if baseline else (), parse_duration(budget) if budget else None)
         print_summary(obj.ws(), outcomes)
 
     @cli.command()

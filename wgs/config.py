@@ -23,11 +23,19 @@ from .gaussians.strategy import DensifyParams
 from .shape.carve import CarveParams
 from .shape.own_shape import OwnShapeParams
 
+# the working size chosen for the machine where neither downscale nor max_size is set (wgs.estimate)
+GPU_MAX_SIZE = 1600  # px, a GPU's long side at most (the 3DGS convention)
+CPU_TARGET_S = 600.0  # a CPU's: the largest size at which `wgs all` is modelled to take about this long
+
 
 @dataclass
 class PrepareConfig:
     views: int | None = None  # None: every training view of the dataset
-    downscale: int = 1
+    # the working size: photos downscaled by this integer factor; None: by the smallest factor that
+    # brings their long side to max_size, and without max_size to the size chosen for the machine
+    # (GPU_MAX_SIZE, CPU_TARGET_S)
+    downscale: int | None = None
+    max_size: int | None = None  # px, the working size's long side at most (with downscale unset)
     max_pixels: int = 4096 * 4096  # refuse larger images unless raised
     test_every: int = 8  # without a test split: every k-th non-training view
     # photos without poses: structure-from-motion (pycolmap)
@@ -94,6 +102,15 @@ class TrainConfig(DensifyParams):
     floater_k: int = 8
     floater_lambda: float = 3.0
     log_every: int = 50
+
+
+def time_boxed(cfg: Any, seconds: float, planned_seconds: float, headroom: float) -> Any:
+    """`cfg` (a TrainConfig) stopped after `seconds` of training: its iteration and densification
+    caps scaled by the time over `planned_seconds` (what its own iterations take) times `headroom`,
+    so that the time, not the caps, ends it; its schedules then follow the elapsed fraction."""
+    scale = max(1.0, seconds / max(planned_seconds, 1e-6)) * headroom
+    return dataclasses.replace(cfg, iterations=int(cfg.iterations * scale), refine_stop=int(cfg.refine_stop * scale),
+                               max_seconds=seconds)
 
 
 @dataclass
@@ -249,6 +266,15 @@ class BaselineConfig:
     headroom: float = 4.0
 
 
+@dataclass
+class AllConfig:
+    """`wgs all` as a whole (the `[all]` table)."""
+
+    # a time budget for the run, such as "10m", "90s" or "1h" (a bare number is minutes): the working
+    # size and the training stages' time are chosen so that the run ends within it (wgs.estimate)
+    budget: str | None = None
+
+
 @dataclass(frozen=True)
 class Stage:
     """One stage of the pipeline, the one place its facts live: `name` keys the workspace (manifests,
@@ -305,9 +331,12 @@ REGISTRY: tuple[Stage, ...] = (
           {"results": "results.json", "report": "report.md", "report_html": "report.html"}, method=False),
 )
 STAGES: dict[str, type] = {s.table: s.config for s in REGISTRY}  # config table -> settings class
+TABLE_OF: dict[str, str] = {s.name: s.table for s in REGISTRY}  # stage name -> its config table
+STAGE_OF_TABLE: dict[str, str] = {s.table: s.name for s in REGISTRY}  # config table -> stage name
 METHOD: tuple[str, ...] = tuple(s.name for s in REGISTRY if s.method)  # what a reconstruction runs, in order
 OUTPUTS: dict[str, dict[str, str]] = {s.name: s.outputs for s in REGISTRY}
 UNASKED: tuple[str, ...] = tuple(s.name for s in REGISTRY if not s.on_request)  # what `wgs all` runs unasked
+RUN_TABLES: dict[str, type] = {"all": AllConfig}  # config-file tables of a whole run, beside the stages'
 
 
 def stages_through(name: str) -> tuple[str, ...]:
@@ -383,9 +412,10 @@ def load_config_file(path: str | Path) -> dict[str, Any]:
     for key, value in data.items():
         if isinstance(value, dict):
             name = key.replace("-", "_")
-            if name not in STAGES:
-                raise InputError(f"unknown table '[{key}]' (known: {', '.join(STAGES)})", path)
-            check_table(STAGES[name], value, key, path)
+            tables = {**STAGES, **RUN_TABLES}
+            if name not in tables:
+                raise InputError(f"unknown table '[{key}]' (known: {', '.join(tables)})", path)
+            check_table(tables[name], value, key, path)
             out[name] = value
         elif key in GLOBAL_KEYS:
             if not isinstance(value, GLOBAL_KEYS[key]) or isinstance(value, bool):
@@ -426,7 +456,8 @@ CHOICES: dict[str, tuple[str, ...]] = {"strategy": ("orm", "offline-rm", "loo"),
 
 
 # the allowed range of a numeric field, inclusive (None: open), whichever stage's config holds it
-RANGES: dict[str, tuple[float, float | None]] = {"views": (2, None), "downscale": (1, None), "sh_degree": (0, 3),
+RANGES: dict[str, tuple[float, float | None]] = {"views": (2, None), "downscale": (1, None), "max_size": (16, None),
+                                                 "sh_degree": (0, 3),
                                                  "ensemble": (1, None), "symmetries": (1, 8),
                                                  "repair_gain_views": (0, None), "mask_agreement": (0.0, 1.0),
                                                  "mask_voter_support": (0.0, 1.0), "mask_max_missed": (0.0, 1.0),

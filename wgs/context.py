@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .config import resolve
+from .config import STAGES, resolve
 from .errors import WgsError
 from .progress import log
 from .workspace import Workspace
@@ -44,6 +44,10 @@ class Ctx:
 
     def config(self, stage: str, preset: str | None, **cli: Any) -> Any:
         return resolve(stage, preset or self.file_cfg.get("global", {}).get("preset"), self.file_cfg, cli)
+
+    def configs(self, preset: str | None, overrides: dict[str, dict[str, Any]] | None = None) -> dict[str, Any]:
+        """Every stage's config (config table -> settings), with per-table CLI `overrides`."""
+        return {t: self.config(t, preset, **(overrides or {}).get(t, {})) for t in STAGES}
 
     def torch_device(self):
         from .device import resolve_device

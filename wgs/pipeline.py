@@ -12,14 +12,13 @@ from typing import Any
 
 import torch
 
-from .config import METHOD, REGISTRY, UNASKED
+from .config import METHOD, REGISTRY, STAGE_OF_TABLE, UNASKED
 from .io import read_json
 from .progress import fmt, log, results
 from .workspace import COMMANDS, Workspace
 
 MANY_VIEWS = 12  # from this many training views on, diffusion repair is left out by default
 REPAIR_STAGES = METHOD[METHOD.index("coarse") + 1:]  # what a sparse-view scene adds to plain 3DGS
-STAGE_OF_TABLE = {s.table: s.name for s in REGISTRY}
 
 
 @dataclass
@@ -44,14 +43,19 @@ def left_out(stage: str, info: dict[str, Any], force_repair: bool, asked: tuple[
 
 
 def run_all(ctx, scene_dir: Path, preset: str | None, force: bool, force_repair: bool,
-            overrides: dict[str, dict[str, Any]], asked: tuple[str, ...] = ()) -> list[StageOutcome]:
+            overrides: dict[str, dict[str, Any]], asked: tuple[str, ...] = (), budget_s: float | None = None
+            ) -> list[StageOutcome]:
     """Run the registry's stages in order for the CLI context `ctx` (workspace, device, seed,
     config file), leaving out what the scene does not need and, of the stages that run only on
-    request, those not in `asked`."""
+    request, those not in `asked`. After prepare it prints the estimate of what is left and, with
+    `budget_s`, time-boxes the training stages so that the run ends within the budget."""
+    from .estimate import RunTiming
     from .stages import run_stage
 
     ws: Workspace = ctx.ws()
     device: torch.device = ctx.torch_device()
+    cfgs = ctx.configs(preset, overrides)
+    timing = RunTiming(device, cfgs, budget_s)
     outcomes: list[StageOutcome] = []
     info: dict[str, Any] | None = None
     for stage in REGISTRY:
@@ -61,16 +65,32 @@ def run_all(ctx, scene_dir: Path, preset: str | None, force: bool, force_repair:
             outcomes.append(StageOutcome(stage.table, "left out", 0.0, why))
             continue
         final = "coarse" if info is not None and left_out("fine", info, force_repair) else "fine"
-        env = ctx.env(device, scene_dir=scene_dir, final=final)
-        cfg = ctx.config(stage.table, preset, **overrides.get(stage.table, {}))
+        env = ctx.env(device, scene_dir=scene_dir, final=final, working_size=timing)
         t0 = time.perf_counter()
-        ran = run_stage(stage.name, ws, cfg, env, force)
+        ran = run_stage(stage.name, ws, cfgs[stage.table], env, force)
         outcomes.append(StageOutcome(stage.table, "ran" if ran else "skipped (fresh)", time.perf_counter() - t0))
         if stage.name == "scene":
             info = read_json(ws.output("scene", "info"))
             if not info["has_masks"]:
                 log("left out: no masks -> no visual hull, no mask loss, no random background")
+            runs = tuple(s.table for s in REGISTRY if left_out(s.name, info, force_repair, asked) is None)
+            cfgs = timing.after_prepare(ws, info, runs)
     return outcomes
+
+
+def prepare_and_estimate(ctx, scene_dir: Path, preset: str | None, options: dict[str, Any], force: bool) -> None:
+    """`wgs prepare`: import the scene at the working size chosen for the machine (unless the options
+    set it) and print the estimate of the stages `wgs all` would run after it."""
+    from .estimate import RunTiming
+    from .stages import run_stage
+
+    ws: Workspace = ctx.ws()
+    device: torch.device = ctx.torch_device()
+    cfgs = ctx.configs(preset, {"prepare": options})
+    timing = RunTiming(device, cfgs)
+    run_stage("scene", ws, cfgs["prepare"], ctx.env(device, scene_dir=scene_dir, working_size=timing), force)
+    info = read_json(ws.output("scene", "info"))
+    timing.after_prepare(ws, info, tuple(s.table for s in REGISTRY if left_out(s.name, info, False) is None))
 
 
 def print_summary(ws: Workspace, outcomes: list[StageOutcome]) -> None:

@@ -69,9 +69,10 @@ def write_report_html(path: Path, *, title: str, times: list[dict[str, Any]], co
     rows = []
     for r in times:
         q = coarse if r["stage"] == "coarse" else fine if r["stage"] == "fine" else None
-        rows.append([r["stage"], f"{r['wall_time_s']:.1f}", f"{r['cumulative_s']:.1f}",
+        rows.append([r["stage"], f"{r['wall_time_s']:.1f}", fmt(r.get("estimate_s"), 1, ""), f"{r['cumulative_s']:.1f}",
                      fmt(q["psnr"], 2) if q else "", fmt(q["ssim"]) if q else "", fmt(q["lpips"]) if q else ""])
-    parts += ["<h2>Summary</h2>", _table(["stage", "wall time (s)", "cumulative (s)", "PSNR", "SSIM", "LPIPS"], rows)]
+    parts += ["<h2>Summary</h2>", _table(["stage", "wall time (s)", "estimate (s)", "cumulative (s)", "PSNR", "SSIM",
+                                               "LPIPS"], rows)]
     parts += [f"<p class='note'>{html.escape(n)}</p>" for n in notes]
     if turntable is not None and (uri := png_data_uri(turntable)) is not None:
         parts += ["<h2>Turntable of the final model</h2>", f"<img src='{uri}' alt='turntable'>"]

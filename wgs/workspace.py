@@ -38,6 +38,7 @@ UPSTREAM: dict[str, tuple[str, ...]] = {s.name: s.upstream for s in REGISTRY}
 COMMANDS: dict[str, str] = {s.name: s.command for s in REGISTRY}
 MANIFEST = "manifest.json"
 LOCK = ".wgs.lock"
+RUN_RECORD = "run.json"  # the last `wgs all` or `wgs prepare`'s calibration, estimate and budget plan (wgs.estimate)
 RESUME = ".resume"  # WS/.resume/<stage dir>/: staging folder `out/`, loop checkpoints `*.pt`, `fingerprint`
 
 
@@ -102,6 +103,17 @@ class Workspace:
     def output(self, stage: str, key: str, *parts: str) -> Path:
         """A file or folder that `stage` declares as its output `key` (`config.Stage.outputs`)."""
         return self.stage_dir(stage).joinpath(declared(stage, key), *parts)
+
+    def run_record(self) -> dict[str, Any]:
+        """What the last run planned (`RUN_RECORD`): {} when none did."""
+        try:
+            data = json.loads((self.root / RUN_RECORD).read_text(encoding="utf-8"))
+        except (OSError, json.JSONDecodeError, UnicodeDecodeError):
+            return {}
+        return data if isinstance(data, dict) else {}
+
+    def write_run_record(self, record: dict[str, Any]) -> None:
+        atomic_write_json(self.root / RUN_RECORD, record)
 
     def resume_dir(self, stage: str) -> Path:
         return self.root / RESUME / STAGE_DIRS[stage]

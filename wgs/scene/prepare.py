@@ -85,6 +85,11 @@ def _out_name(v: View) -> str:
     return Path(v.name.replace("/", "__")).stem + ".png"
 
 
+def downscale_for(width: int, height: int, max_size: int) -> int:
+    """The smallest integer downscale that brings a `width` x `height` photo's long side to at most `max_size` px."""
+    return max(1, -(-max(width, height) // max_size))
+
+
 def _prescaled(v: View, root: Path, k: int) -> Path | None:
     """COLMAP's `images_K/` copy of a pinhole view, when the scene ships one."""
     if k <= 1 or v.distortion is not None:
@@ -95,7 +100,8 @@ def _prescaled(v: View, root: Path, k: int) -> Path | None:
 
 def _load_view(v: View, cfg: PrepareConfig, root: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     """Read, check, undistort and downscale one view -> rgb [H,W,3], mask [H,W] or None, K."""
-    small = _prescaled(v, root, cfg.downscale)
+    k = cfg.downscale or 1
+    small = _prescaled(v, root, k)
     img = read_image(v.image, cfg.max_pixels)
     h, w = img.shape[:2]
     if (w, h) != (v.width, v.height):
@@ -110,7 +116,6 @@ def _load_view(v: View, cfg: PrepareConfig, root: Path) -> tuple[np.ndarray, np.
     if v.distortion is not None:
         rgb, K, extra = undistort(rgb, v.distortion, K, w, h, [mask] if mask is not None else None)
         mask = extra[0] if extra else None
-    k = cfg.downscale
     if small is not None:
         rgb = split_rgba(read_image(small, cfg.max_pixels))[0]
         sh, sw = rgb.shape[:2]
@@ -221,7 +226,7 @@ def prepare(scene: RawScene, cfg: PrepareConfig, out: Path) -> dict[str, Any]:
         "train_names": train_names,
         "test_names": test_names,
         "resolution": list(res[0]) if len(res) == 1 else [list(r) for r in res],
-        "downscale": cfg.downscale,
+        "downscale": cfg.downscale or 1,
         "has_masks": bool(all(masked)),
         "masks": mask_info,
         "normalisation": norm.to_json(),

@@ -7,7 +7,7 @@ from __future__ import annotations
 import importlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from ..config import REGISTRY
 
@@ -15,6 +15,16 @@ if TYPE_CHECKING:
     import torch
 
     from ..workspace import Workspace
+
+
+class WorkingSize(Protocol):
+    """Prepare's working size where neither downscale nor max_size is set: (photo width, height,
+    training views, test views) -> (downscale, the line that says why). `key` names the rule; a
+    change of it makes the prepared scene stale."""
+
+    key: str
+
+    def __call__(self, width: int, height: int, n_train: int, n_test: int) -> tuple[int, str]: ...
 
 
 @dataclass(frozen=True)
@@ -25,6 +35,7 @@ class StageEnv:
     seed: int = 0
     scene_dir: Path | None = None  # prepare: the scene folder to import
     final: str = "fine"  # eval: the model it scores (fine, or coarse where the repair stages were left out)
+    working_size: WorkingSize | None = None  # prepare: the size chosen for the machine; None: the photos' own
 
 
 def stage_runner(name: str):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 from pathlib import Path
 
@@ -11,7 +12,7 @@ from ..io import atomic_write_bytes, atomic_write_json, read_json
 from ..progress import log
 from ..scene.dataset import load_prepared
 from ..scene.formats import detect_format
-from ..scene.prepare import load_scene_for_prepare, prepare, scene_inputs_digest
+from ..scene.prepare import downscale_for, load_scene_for_prepare, prepare, scene_inputs_digest
 from ..scene.sfm import find_photos, pose_photos
 from ..scene.types import RawScene
 from ..shape.symmetry import mirror_check
@@ -64,8 +65,32 @@ def run_prepare(ws: Workspace, cfg: PrepareConfig, env: StageEnv, force: bool = 
         s = read_json(sfm_model / SFM_SUMMARY)
         scene.notes.append(f"poses by structure-from-motion: {s['registered']} of {s['photos']} photos registered "
                            f"({s['matcher']} matching, {s['seconds']:.0f} s); the model is in {sfm_model}")
-    extra = {"source": str(scene_dir.resolve()), "inputs": scene_inputs_digest(scene)}
-    return ws.run_stage("scene", cfg, extra, force, lambda run: import_scene(run, ws, scene_dir, scene, cfg, force))
+    extra = {"source": str(scene_dir.resolve()), "inputs": scene_inputs_digest(scene),
+             "working_size": env.working_size.key if env.working_size and not (cfg.downscale or cfg.max_size) else None}
+
+    def body(run: StageRun) -> str:
+        k, why = working_downscale(scene, cfg, env)
+        if why:
+            log(why)
+            run.record["working_size"] = why
+        return import_scene(run, ws, scene_dir, scene, dataclasses.replace(cfg, downscale=k), force)
+
+    return ws.run_stage("scene", cfg, extra, force, body)
+
+
+def working_downscale(scene: RawScene, cfg: PrepareConfig, env: StageEnv) -> tuple[int, str | None]:
+    """The integer downscale of the photos, and the line that says why where wgs chose it: `downscale`,
+    else from `max_size`, else the size chosen for the machine (`env.working_size`), else 1."""
+    if cfg.downscale:
+        return cfg.downscale, None
+    v = scene.views[scene.train[0]]
+    if cfg.max_size:
+        k = downscale_for(v.width, v.height, cfg.max_size)
+        return k, (f"working size: {v.width // k}x{v.height // k} (the photos' {v.width}x{v.height} / {k}: "
+                   f"--max-size {cfg.max_size})")
+    if env.working_size is None:
+        return 1, None
+    return env.working_size(v.width, v.height, len(scene.train), len(scene.test))
 
 
 def mask_line(masks: dict, sheet: Path, proposed: Path) -> str:

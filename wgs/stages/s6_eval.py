@@ -191,20 +191,23 @@ def shape_line(coarse: dict, fine: dict, shape: dict) -> str:
 
 def write_report(run: StageRun, times: list[dict[str, Any]], coarse: dict, fine: dict, eval_s: float,
                  lpips_note: str | None, curves: dict[str, list[tuple[float, float]]] | None = None,
-                 baseline: dict | None = None, shape: dict | None = None, masks_note: str | None = None) -> None:
+                 baseline: dict | None = None, shape: dict | None = None, masks_note: str | None = None,
+                 eval_estimate_s: float | None = None) -> None:
     total = (times[-1]["cumulative_s"] if times else 0.0) + eval_s
     lines = ["# wgs report: error against run time", "",
-             "| stage | wall time (s) | cumulative (s) | peak memory (MiB) | PSNR | SSIM | LPIPS | silhouette IoU |",
-             "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+             "| stage | wall time (s) | estimate (s) | cumulative (s) | peak memory (MiB) | PSNR | SSIM | LPIPS "
+             "| silhouette IoU |",
+             "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for r in times:
         q = coarse if r["stage"] == "coarse" else fine if r["stage"] == "fine" else None
         qs = ([fmt(q["psnr"], 2), fmt(q["ssim"]), fmt(q["lpips"]), fmt(q.get("silhouette_iou"))] if q
               else ["", "", "", ""])
-        lines.append(f"| {r['stage']} | {r['wall_time_s']:.1f} | {r['cumulative_s']:.1f} | "
-                     f"{fmt(r['peak_memory_mb'], 0)} | " + " | ".join(qs) + " |")
-    lines.append(f"| eval | {eval_s:.1f} | {total:.1f} | | | | | |")
+        lines.append(f"| {r['stage']} | {r['wall_time_s']:.1f} | {fmt(r['estimate_s'], 1, '')} | "
+                     f"{r['cumulative_s']:.1f} | {fmt(r['peak_memory_mb'], 0)} | " + " | ".join(qs) + " |")
+    lines.append(f"| eval | {eval_s:.1f} | {fmt(eval_estimate_s, 1, '')} | {total:.1f} | | | | | |")
     lines += ["", f"Quality is measured on {fine.get('num_views')} test views (mean over views; "
-                  "coarse = G_c, fine = G_f).", ""]
+                  "coarse = G_c, fine = G_f). The estimate is the one printed before training (`wgs.estimate`); "
+                  "empty where the stage did not run in that `wgs all`.", ""]
     if shape is not None:
         lines += [shape_line(coarse, fine, shape) + ".",
                   SILHOUETTE_DOC[0].upper() + SILHOUETTE_DOC[1:] + ".", ""]
@@ -384,7 +387,8 @@ def evaluate(run: StageRun, ws: Workspace, cfg: EvalConfig, device: torch.device
            "lpips_net": cfg.lpips_net if lpips_fn else None,
            "lpips_unavailable": lpips_note, "metrics": METRICS_DOC,
            "lpips_weights": lpips_fn.sources if lpips_fn else None,
-           "stage_times_s": {r["stage"]: r["wall_time_s"] for r in stage_times(ws)}}
+           "stage_times_s": {r["stage"]: r["wall_time_s"] for r in stage_times(ws)},
+           "estimate_s": ws.run_record().get("estimate"), "budget_s": ws.run_record().get("budget_s")}
     source = ((ws.manifest("scene") or {}).get("summary") or {}).get("source")
     res.update({"scene": source, "method": "wgs" if final == "fine" else "wgs-coarse-only",
                 "version": __version__, "seed": seed,
@@ -397,7 +401,8 @@ def evaluate(run: StageRun, ws: Workspace, cfg: EvalConfig, device: torch.device
     res["curves"] = curve_points(ws, stage_times(ws), "baseline_3dgs" in results)
     atomic_write_json(run.output("results"), res)
     write_report(run, stage_times(ws), results["coarse"], results["fine"], time.perf_counter() - t0,
-                 lpips_note, res["curves"], results.get("baseline_3dgs"), shape, res["masks_note"])
+                 lpips_note, res["curves"], results.get("baseline_3dgs"), shape, res["masks_note"],
+                 (res["estimate_s"] or {}).get("eval"))
     if cfg.turntable_frames > 0:
         write_gif(run.path("turntable.gif"), [render_frame(final_splats, f, device, bg)[0].numpy()
                                               for f in orbit_frames(scene.train, cfg.turntable_frames)])

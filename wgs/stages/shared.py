@@ -9,7 +9,7 @@ from typing import Any
 
 import torch
 
-from ..config import METHOD, REGISTRY, BaselineConfig, CoarseConfig, TrainConfig
+from ..config import METHOD, REGISTRY, TABLE_OF, BaselineConfig, CoarseConfig, TrainConfig, time_boxed
 from ..errors import InputError
 from ..gaussians.init import hull_points, knn_mean_distance, random_init, visual_hull
 from ..gaussians.splats import Splats, create_splats, load_checkpoint
@@ -42,11 +42,8 @@ def initial_splats(scene: PreparedScene, cfg: TrainConfig, seed: int, hull: Hull
 def plain_3dgs_config(coarse: CoarseConfig, budget_s: float, coarse_train_s: float,
                       headroom: float = BaselineConfig.headroom) -> CoarseConfig:
     """Plain 3DGS for a training-time budget (what the time would buy without the repair): the
-    coarse stage's settings for one model, its iteration and densification caps scaled from G_c's
-    own rate times `headroom`. The time budget decides; the schedules follow its elapsed fraction."""
-    scale = max(1.0, budget_s / max(coarse_train_s, 1e-6)) * headroom
-    return dataclasses.replace(coarse, iterations=int(coarse.iterations * scale),
-                               refine_stop=int(coarse.refine_stop * scale), max_seconds=budget_s, ensemble=1)
+    coarse stage's settings for one model, time-boxed (`config.time_boxed`) from G_c's own rate."""
+    return dataclasses.replace(time_boxed(coarse, budget_s, coarse_train_s, headroom), ensemble=1)
 
 
 def recorded_config(ws, stage: str) -> Any:
@@ -68,15 +65,17 @@ def subbands_hwc(img: torch.Tensor) -> dict[str, object]:
 
 
 def stage_times(ws) -> list[dict[str, Any]]:
-    """Wall time, cumulative wall time and peak memory of each method stage that ran, in order."""
+    """Wall time, cumulative wall time, peak memory and the run's estimate (`Workspace.run_record`,
+    None where it made none) of each method stage that ran, in order."""
     rows, cum = [], 0.0
+    estimate = ws.run_record().get("estimate") or {}
     for st in METHOD:
         m = ws.manifest(st)
         if m is None:
             continue
         cum += m.get("wall_time_s", 0.0)
         rows.append({"stage": st, "wall_time_s": m.get("wall_time_s", 0.0), "cumulative_s": round(cum, 2),
-                     "peak_memory_mb": m.get("peak_memory_mb")})
+                     "peak_memory_mb": m.get("peak_memory_mb"), "estimate_s": estimate.get(TABLE_OF[st])})
     return rows
 
 

@@ -1,0 +1,90 @@
+"""The run-time estimate against the time each stage took, for finished `wgs all` workspaces, and
+for those run with a budget, the time against the budget and the quality it bought.
+
+For each workspace: the estimate its run printed (`run.json`), the estimate the model in
+`wgs/estimate.py` gives now from the same calibration and the stages' recorded settings, and
+each stage's wall time (its manifest); with TIMES (lines `NAME rc=0 wall=SECONDS`, as a run
+queue writes them) also the whole command's wall time.
+
+    python xp_estimate.py [--times TIMES] WORKSPACE...
+"""
+import argparse
+import json
+from pathlib import Path
+
+from wgs.config import REGISTRY
+from wgs.estimate import Calibration, SceneFacts, stage_seconds
+from wgs.stages.shared import recorded_config
+from wgs.workspace import Workspace
+
+LOSS_2_CORES = (0.0005, 2.0e-7)  # s, s per pixel: the photometric loss, forward + backward (2026-11-27)
+TABLES = [s.table for s in REGISTRY if s.name != "baseline"]
+NAME = {s.table: s.name for s in REGISTRY}
+
+
+def one(ws: Workspace, wall: float | None) -> dict:
+    run = ws.run_record()
+    cal = run["calibration"]
+    if "raster_all" in cal:  # a calibration of the rasterizer alone: the loss's time added (2-core CPU, quiet)
+        loss = LOSS_2_CORES
+        cal = {**{k: v for k, v in cal.items() if k not in ("raster_all", "raster_one")},
+               "raster": (cal["raster_all"][0] + loss[0], cal["raster_all"][1] + loss[1])}
+    cal = Calibration(**{**cal, "raster": tuple(cal["raster"])})
+    sc = run["scene"]
+    cfgs = {t: recorded_config(ws, NAME[t]) for t in TABLES}
+    masks = sc.get("has_masks", (ws.manifest("scene") or {}).get("summary", {}).get("has_masks", True))
+    now = stage_seconds(cal, cfgs, SceneFacts(sc["width"], sc["height"], sc["train"], sc["test"], has_masks=masks))
+    actual = {t: (ws.manifest(NAME[t]) or {}).get("wall_time_s") for t in TABLES}
+    printed = run.get("estimate") or {}
+    shown = [t for t in TABLES if t != "prepare" and t in printed and actual[t] is not None]
+    tot = {k: sum(d[t] for t in shown) for k, d in (("printed", printed), ("now", now), ("actual", actual))}
+    res = ws.output("eval", "results")
+    quality = {}
+    if res.is_file():
+        r = json.loads(res.read_text())
+        quality = {"gc": r["coarse"]["psnr"], "gf": r["psnr"], "iou": r.get("silhouette_iou")}
+    return {"quality": quality, "workspace": ws.root.name, "size": f"{sc['width']}x{sc['height']}",
+            "budget_s": run.get("budget_s"),
+            "stages": {t: {"printed": printed.get(t), "now": now[t], "actual": actual[t]} for t in shown},
+            "after_prepare": tot, "prepare_s": actual["prepare"], "wall_s": wall}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("workspaces", nargs="+", type=Path)
+    ap.add_argument("--times", type=Path)
+    a = ap.parse_args()
+    walls = {}
+    if a.times and a.times.is_file():
+        for line in a.times.read_text().splitlines():
+            name, _, wall = line.split()
+            walls[name] = float(wall.split("=")[1])
+    rows = [one(Workspace(p), walls.get(p.name)) for p in a.workspaces]
+    print("| workspace | size | budget (s) | estimate printed (s) | model now (s) | the stages took (s) | "
+          "printed / took | prepare (s) | `wgs all` wall (s) | (prepare + printed) / wall |")
+    print("| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
+    for r in rows:
+        t, wall = r["after_prepare"], r["wall_s"]
+        whole = f"{(r['prepare_s'] + t['printed']) / wall:.2f}" if wall else ""
+        print(f"| {r['workspace']} | {r['size']} | {r['budget_s'] or ''} | {t['printed']:.0f} | {t['now']:.0f} | "
+              f"{t['actual']:.0f} | {t['printed'] / t['actual']:.2f} | {r['prepare_s']:.0f} | "
+              f"{f'{wall:.0f}' if wall else ''} | {whole} |")
+    budgeted = [r for r in rows if r["budget_s"] and r["wall_s"]]
+    if budgeted:
+        print("\n| workspace | budget (min) | working size | `wgs all` wall (s) | wall / budget | G_c -> G_f PSNR (dB) "
+              "| G_f silhouette IoU |")
+        print("| --- | ---: | --- | ---: | ---: | ---: | ---: |")
+        for r in budgeted:
+            q = r["quality"]
+            print(f"| {r['workspace']} | {r['budget_s'] / 60:.0f} | {r['size']} | {r['wall_s']:.0f} | "
+                  f"{r['wall_s'] / r['budget_s']:.2f} | {q.get('gc', 0):.2f} -> {q.get('gf', 0):.2f} | "
+                  f"{q.get('iou') or 0:.3f} |")
+    print()
+    for r in rows:
+        stages = r["stages"].items()
+        print(r["workspace"], "printed/now/took:", " ".join(f"{k} {v['printed']}/{v['now']}/{v['actual']:.1f}"
+                                                         for k, v in stages))
+
+
+if __name__ == "__main__":
+    main()

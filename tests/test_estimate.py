@@ -1,0 +1,210 @@
+"""The run-time estimate, the working size chosen for the machine, and the time budget (wgs.estimate)."""
+
+import dataclasses
+import json
+
+import pytest
+import torch
+from conftest import expect_error, run_cli
+
+from wgs.config import GPU_MAX_SIZE, STAGES, load_config_file, resolve, time_boxed
+from wgs.errors import InputError
+from wgs.estimate import (
+    CALIBRATION_MAX_AGE_S,
+    MIN_SIZE,
+    Calibration,
+    RunTiming,
+    SceneFacts,
+    budget_plan,
+    cached_calibration,
+    calibrate,
+    choose_downscale,
+    parse_duration,
+    stage_seconds,
+)
+from wgs.scene.prepare import downscale_for
+
+# about this 2-core CPU's figures (a calibration made here)
+CAL = Calibration(raster=(0.008, 5.5e-7), d_step_s=0.12,
+                  d_forward_s_per_pixel=2.3e-6, threads=2, device="cpu", seconds=3.0)
+
+
+def configs(preset=None, **tables):
+    cfgs = {t: resolve(t, preset) for t in STAGES}
+    for t, fields in tables.items():
+        cfgs[t] = dataclasses.replace(cfgs[t], **fields)
+    return cfgs
+
+
+def test_smoke_calibrate_cpu():
+    cal = calibrate(torch.device("cpu"))
+    assert cal.device == "cpu" and cal.threads >= 1
+    assert cal.d_step_s > 0 and cal.d_forward_s_per_pixel > 0
+    assert cal.view_s(256 * 256) > cal.view_s(64 * 64) > 0
+
+
+def test_calibration_cached_for_an_hour(tmp_path, monkeypatch):
+    monkeypatch.setenv("WGS_CACHE", str(tmp_path))
+    calls = []
+    monkeypatch.setattr("wgs.estimate.calibrate", lambda device: calls.append(device) or CAL)
+    assert cached_calibration(torch.device("cpu"), now=1000.0) == CAL
+    assert cached_calibration(torch.device("cpu"), now=1000.0 + CALIBRATION_MAX_AGE_S / 2) == CAL
+    assert len(calls) == 1
+    cached_calibration(torch.device("cpu"), now=1000.0 + 2 * CALIBRATION_MAX_AGE_S)
+    assert len(calls) == 2
+    (tmp_path / "calibration.json").write_text("{broken")
+    assert cached_calibration(torch.device("cpu"), now=1.0) == CAL  # a broken cache is made again
+
+
+def test_stage_seconds_grow_with_size_and_iterations():
+    small = stage_seconds(CAL, configs(), SceneFacts(128, 128, 4, 8))
+    large = stage_seconds(CAL, configs(), SceneFacts(256, 256, 4, 8))
+    longer = stage_seconds(CAL, configs(coarse={"iterations": 3000}), SceneFacts(128, 128, 4, 8))
+    assert set(small) == {"prepare", "coarse", "mask_data", "finetune", "repair", "fine", "eval"}
+    for t in ("coarse", "mask_data", "fine", "repair", "eval"):
+        assert large[t] > small[t]
+    assert longer["coarse"] > 1.8 * (small["coarse"] - 25 * CAL.d_step_s)
+    assert longer["fine"] == small["fine"]
+    fast = stage_seconds(CAL, configs("fast"), SceneFacts(128, 128, 4, 8))
+    assert sum(fast.values()) < sum(small.values()) / 3
+
+
+def test_max_seconds_caps_a_stage():
+    capped = stage_seconds(CAL, configs(fine={"max_seconds": 5.0}), SceneFacts(200, 200, 4, 8))
+    assert capped["fine"] == pytest.approx(5.0 + 10 * CAL.d_step_s, abs=0.1)
+
+
+def test_downscale_for():
+    assert downscale_for(4000, 3000, 1600) == 3
+    assert downscale_for(1600, 1200, 1600) == 1
+    assert downscale_for(100, 80, 1600) == 1
+    assert downscale_for(401, 300, 200) == 3
+
+
+def test_choose_downscale_cpu_target_and_gpu():
+    facts = SceneFacts(4000, 4000, 4, 8, full_pixels=16_000_000)
+    k10, t10 = choose_downscale(CAL, configs(), facts, 600.0)
+    k5, t5 = choose_downscale(CAL, configs(), facts, 300.0)
+    assert k5 > k10 and t5 <= 300.0 and t10 <= 600.0
+    # one size larger would not fit
+    w, h = 4000 // (k10 - 1), 4000 // (k10 - 1)
+    assert sum(stage_seconds(CAL, configs(), dataclasses.replace(facts, width=w, height=h)).values()) > 600.0
+    # an impossible target: the smallest allowed size, and a time over the target
+    k, t = choose_downscale(CAL, configs(), facts, 1.0)
+    assert max(4000 // k, 4000 // k) <= MIN_SIZE and t > 1.0
+    gpu = dataclasses.replace(CAL, device="cuda:0")
+    assert choose_downscale(gpu, configs(), facts, None) == (downscale_for(4000, 4000, GPU_MAX_SIZE), None)
+
+
+def test_budget_plan_fills_the_budget():
+    facts = SceneFacts(200, 200, 4, 200)
+    cfgs = configs()
+    for left in (240.0, 600.0, 1200.0):
+        plan = budget_plan(CAL, cfgs, facts, left)
+        assert sum(plan["seconds"].values()) == pytest.approx(left, rel=0.02)
+        for t in ("coarse", "mask_data", "fine"):
+            boxed = plan["stages"][t]
+            assert boxed.max_seconds > 0 and boxed.iterations >= cfgs[t].iterations
+            assert boxed.refine_stop / boxed.iterations == pytest.approx(cfgs[t].refine_stop / cfgs[t].iterations,
+                                                                          rel=0.01)
+    # stages left out get no share
+    plan = budget_plan(CAL, cfgs, facts, 300.0, runs=("coarse", "eval"))
+    assert set(plan["seconds"]) == {"coarse", "eval"}
+
+
+def test_time_boxed_scales_caps():
+    cfg = resolve("coarse")
+    boxed = time_boxed(cfg, 100.0, 50.0, 1.5)
+    assert boxed.max_seconds == 100.0 and boxed.iterations == int(cfg.iterations * 3)
+    assert time_boxed(cfg, 10.0, 50.0, 1.5).iterations == int(cfg.iterations * 1.5)
+
+
+@pytest.mark.parametrize("text,seconds", [("10m", 600), ("90s", 90), ("1.5h", 5400), ("5", 300), (" 20 min ", 1200)])
+def test_parse_duration(text, seconds):
+    assert parse_duration(text) == seconds
+
+
+@pytest.mark.parametrize("text", ["", "ten minutes", "-5m", "0", "5d"])
+def test_exception_parse_duration(text):
+    with pytest.raises(InputError, match="budget"):
+        parse_duration(text)
+
+
+def test_all_table_in_config_file(tmp_path):
+    good = tmp_path / "good.toml"
+    good.write_text('[all]\nbudget = "10m"\n')
+    assert load_config_file(good)["all"] == {"budget": "10m"}
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[all]\nbudget = 10\n")
+    with pytest.raises(InputError, match="all.budget"):
+        load_config_file(bad)
+
+
+def test_working_size_line_and_gpu_rule(monkeypatch):
+    monkeypatch.setattr("wgs.estimate.cached_calibration", lambda device: CAL)
+    k, line = RunTiming(torch.device("cpu"), configs())(4000, 3000, 4, 8)
+    assert 4000 // k <= 400 and line.startswith(f"working size: {4000 // k}x{3000 // k}")
+    assert "--max-size" in line
+    k, line = RunTiming(torch.device("cpu"), configs())(64, 64, 4, 8)
+    assert k == 1 and "own size" in line
+    k, line = RunTiming(torch.device("cuda"), configs())(4000, 3000, 4, 8)
+    assert k == 3 and "1600" in line
+
+
+def test_feature_prepare_max_size_and_estimate(blender_scene, tmp_path):
+    """`wgs prepare --max-size` sets the working size; without it the machine's is chosen and said;
+    the estimate of what follows is printed and kept in run.json."""
+    ws = tmp_path / "ws"
+    r = run_cli(["-w", str(ws), "prepare", str(blender_scene), "--views", "4", "--max-size", "32"], tmp_path)
+    assert r.returncode == 0, r.stderr
+    info = json.loads((ws / "scene" / "scene.json").read_text())
+    assert max(info["resolution"]) <= 32 and info["downscale"] >= 2
+    assert "working size:" in r.stderr and "--max-size 32" in r.stderr
+    assert "estimate: about" in r.stderr
+    record = json.loads((ws / "run.json").read_text())
+    assert set(record["estimate"]) >= {"coarse", "fine", "eval"} and record["budget_s"] is None
+    ws2 = tmp_path / "ws2"
+    r = run_cli(["-w", str(ws2), "prepare", str(blender_scene), "--views", "4"], tmp_path)
+    assert r.returncode == 0 and "own size" in r.stderr
+
+
+def test_exception_bad_budget(blender_scene, tmp_path):
+    expect_error(tmp_path, ["-w", str(tmp_path / "ws"), "all", str(blender_scene), "--budget", "soon"], "budget")
+
+
+def test_feature_report_puts_the_estimate_beside_the_time(finished_workspace):
+    base, _ = finished_workspace
+    ws = base / "ws"
+    record = json.loads((ws / "run.json").read_text())
+    assert set(record["estimate"]) == {"coarse", "mask_data", "finetune", "repair", "fine", "eval"}
+    report = (ws / "6_eval" / "report.md").read_text()
+    assert "| stage | wall time (s) | estimate (s) |" in report
+    coarse_row = next(line for line in report.splitlines() if line.startswith("| coarse |"))
+    assert float(coarse_row.split("|")[3]) == pytest.approx(record["estimate"]["coarse"], abs=0.05)
+    results = json.loads((ws / "6_eval" / "results.json").read_text())
+    assert results["estimate_s"] == record["estimate"] and results["budget_s"] is None
+    assert "estimate (s)" in (ws / "6_eval" / "report.html").read_text()
+
+
+def test_feature_budget_time_boxes_the_training_stages(tmp_path, monkeypatch):
+    """With a budget, after prepare the training stages are time-boxed to fill what is left; a rerun
+    with the same budget keeps the plan, so that the finished stages stay up to date."""
+    from wgs.workspace import Workspace
+
+    monkeypatch.setattr("wgs.estimate.cached_calibration", lambda device: CAL)
+    ws = Workspace(tmp_path / "ws")
+    ws.root.mkdir()
+    info = {"resolution": [200, 200], "train_names": ["a"] * 4, "test_names": ["b"] * 8, "has_masks": True}
+    runs = ("prepare", "coarse", "mask_data", "finetune", "repair", "fine", "eval")
+    timing = RunTiming(torch.device("cpu"), configs(), budget_s=600.0)
+    cfgs = timing.after_prepare(ws, info, runs)
+    record = json.loads((ws.root / "run.json").read_text())
+    assert record["budget_s"] == 600.0
+    assert sum(record["plan"]["seconds"].values()) == pytest.approx(600.0 - 3.0, rel=0.02)
+    for t in ("coarse", "mask_data", "fine"):
+        assert cfgs[t].max_seconds == record["plan"]["stages"][t]["max_seconds"] > 0
+    assert record["estimate"]["coarse"] == pytest.approx(record["plan"]["seconds"]["coarse"], rel=0.01)
+    # a rerun finds the same plan in run.json once its stages have run with it
+    again = RunTiming(torch.device("cpu"), configs(), budget_s=600.0)
+    monkeypatch.setattr("wgs.estimate._fresh", lambda ws, table, cfg, fields=None: True)
+    assert again.after_prepare(ws, info, runs)["coarse"].max_seconds == cfgs["coarse"].max_seconds
