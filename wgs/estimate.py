@@ -40,7 +40,7 @@ from .errors import InputError
 from .io import atomic_write_json
 from .progress import log
 from .scene.prepare import downscale_for
-from .workspace import Workspace
+from .workspace import Workspace, fingerprint
 
 CALIBRATION_SIDES = (128, 256)  # square views the rasterizer is timed at
 CALIBRATION_GAUSSIANS = 8000  # about a 4-view model's size at 200 px
@@ -221,16 +221,12 @@ def _loop_s(cal: Calibration, cfg: TrainConfig, pixels: float, renders: float = 
     return cfg.iterations * per * renders
 
 
-def side_by_side_count(cfg: CoarseConfig, device_type: str, pixels: int) -> int:
-    from .stages.s1_coarse import side_by_side
-
-    return side_by_side(cfg, torch.device(device_type), pixels)
-
-
 def loops(cal: Calibration, cfgs: dict[str, Any], facts: SceneFacts) -> dict[str, tuple[int, float, float]]:
     """Each training stage's (loops run one after another, modelled seconds of one loop, stage factor)."""
     coarse: CoarseConfig = cfgs["coarse"]
-    workers = side_by_side_count(coarse, cal.device.split(":")[0], facts.pixels)
+    from .stages.s1_coarse import side_by_side
+
+    workers = side_by_side(coarse, torch.device(cal.device), facts.pixels)
     fine: FineConfig = cfgs["fine"]
     mask: MaskDataConfig = cfgs["mask_data"]
     masks = 1.0 if facts.has_masks else NO_MASKS_FACTOR
@@ -436,8 +432,4 @@ def _fresh(ws: Workspace, table: str, cfg: Any, fields: dict[str, Any] | None = 
     """Whether the stage of config table `table` last ran with `cfg` (with `fields` over it)."""
     held = (ws.manifest(STAGE_OF_TABLE[table]) or {}).get("config")
     want = as_dict(dataclasses.replace(cfg, **fields) if fields else cfg)
-    return held is not None and json_equal(held, want)
-
-
-def json_equal(a: Any, b: Any) -> bool:
-    return json.dumps(a, sort_keys=True, default=str) == json.dumps(b, sort_keys=True, default=str)
+    return held is not None and fingerprint(held) == fingerprint(want)
