@@ -35,7 +35,7 @@ demo: $(VENV)/.base examples/scene/transforms_train.json
 	@cat $(DEMO_WS)/6_eval/report.md
 
 test: $(VENV)/.installed
-	$(BIN)/python -m pytest -q -n auto --durations=12 tests
+	$(BIN)/python -m pytest -q -n auto --dist worksteal --durations=12 tests
 
 bench: $(VENV)/.installed
 	$(BIN)/python -m wgs.bench rasterizer --json
@@ -47,7 +47,7 @@ bench: $(VENV)/.installed
 ablation: $(VENV)/.installed
 	$(BIN)/wgs -w ablate ablate ../shared/data/lego --views 4 --downscale 2 --mirror none
 
-# Rebuild the repair prior shipped in wgs/prior/weights (resumable; cache in ~/.cache/wgs-prior):
+# Rebuild the repair prior shipped in wgs/weights (resumable; cache in ~/.cache/wgs-prior):
 # objects from the snapshots in MIRROR (owner+name/repo, see README) + procedural ones, our coarse
 # stage on sparse views of each, pairs at novel poses, then D and U (a GPU is used when present).
 prior: $(VENV)/.installed
@@ -74,8 +74,11 @@ stress: $(VENV)/.installed
 	$(BIN)/python -m wgs.stress signal-loop
 	HYPOTHESIS_PROFILE=stress $(BIN)/python -m pytest -q tests/test_fuzz_loaders.py
 
+# what CI runs before the tests: lint, formatting, types (the scope is in pyproject.toml, [tool.mypy])
 lint: $(VENV)/.installed
-	$(BIN)/ruff check wgs tests examples
+	$(BIN)/ruff check wgs tests examples docs/experiments
+	$(BIN)/ruff format --check wgs tests examples docs/experiments
+	$(BIN)/mypy
 
 clean:
 	rm -rf $(DEMO_WS) examples/scene .pytest_cache .numba_cache

@@ -42,9 +42,13 @@ def make_object(rng: np.random.Generator) -> list[dict]:
         q = rng.normal(size=4)
         q /= np.linalg.norm(q)
         w, x, y, z = q
-        p["R"] = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                           [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                           [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+        p["R"] = np.array(
+            [
+                [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+            ]
+        )
         p["col"] = rng.uniform(0.15, 0.95, (2, 3))
         p["freq"] = float(rng.integers(3, 9))
     return parts
@@ -79,7 +83,7 @@ def room(o: np.ndarray, d: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     # the wall: the cylinder x² + y² = R² hit from inside
     a = d[..., 0] ** 2 + d[..., 1] ** 2
     b = 2 * (o[0] * d[..., 0] + o[1] * d[..., 1])
-    c = o[0] ** 2 + o[1] ** 2 - WALL_RADIUS ** 2
+    c = o[0] ** 2 + o[1] ** 2 - WALL_RADIUS**2
     t_wall = (-b + np.sqrt(np.maximum(b * b - 4 * a * c, 0))) / np.maximum(2 * a, 1e-9)
     q = o + t_wall[..., None] * d
     ang = np.arctan2(q[..., 1], q[..., 0])
@@ -120,8 +124,7 @@ def hit_ellipsoids(parts: list[dict], o: np.ndarray, d: np.ndarray) -> tuple[np.
     return t_best, albedo, normal
 
 
-def render(obj, c2w: np.ndarray, size: int, ss: int = 2, background: np.random.Generator | None = None
-           ) -> np.ndarray:
+def render(obj, c2w: np.ndarray, size: int, ss: int = 2, background: np.random.Generator | None = None) -> np.ndarray:
     """Ray-cast [size, size, 4] straight-alpha RGBA of `obj` (ellipsoids from `make_object`, or a
     `ShapeObject`), supersampled ss x ss (premultiplied average); with a `background` generator,
     opaque RGBA of the object in the room (`room`) under a light of random strength and tint."""
@@ -183,8 +186,9 @@ class ShapeObject:
     def local_sdf(self, p: np.ndarray) -> np.ndarray:
         return self.sdf(p @ self.R)
 
-    def hit(self, o: np.ndarray, d: np.ndarray, steps: int = 160, far: float = 8.0
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def hit(
+        self, o: np.ndarray, d: np.ndarray, steps: int = 160, far: float = 8.0
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Sphere tracing: as `hit_ellipsoids`."""
         t = np.zeros(d.shape[:-1])
         hit = np.zeros(d.shape[:-1], dtype=bool)
@@ -218,6 +222,7 @@ def bottle(rng: np.random.Generator):
     def radius(z):
         s = np.clip((z - shoulder) / 0.3, 0, 1)
         return body + (neck - body) * s * s * (3 - 2 * s)
+
     return lambda p: sd_revolution(p, radius, 0.8, 1.6 * (body - neck) / 0.3)
 
 
@@ -238,8 +243,9 @@ def mug(rng: np.random.Generator):
     """Thin part: a cylindrical mug with a ring handle."""
     r, h, ring = rng.uniform(0.35, 0.45), rng.uniform(0.4, 0.55), rng.uniform(0.045, 0.07)
     handle = np.array([r + 0.12, 0.0, 0.0])
-    return lambda p: np.minimum(sd_revolution(p, lambda z: np.full_like(z, r), h, 0.0),
-                                sd_torus_y(p, handle, 0.25, ring))
+    return lambda p: np.minimum(
+        sd_revolution(p, lambda z: np.full_like(z, r), h, 0.0), sd_torus_y(p, handle, 0.25, ring)
+    )
 
 
 def table(rng: np.random.Generator):
@@ -253,6 +259,7 @@ def table(rng: np.random.Generator):
         for c in corners:
             d = np.minimum(d, sd_box(p - c, np.array([leg, leg, 0.6])))
         return d
+
     return sdf
 
 
@@ -263,8 +270,9 @@ def make_shape(kind: str, rng: np.random.Generator):
     """The object of a kind (`KINDS`): ellipsoids for "blobs", else a `ShapeObject`."""
     if kind == "blobs":
         return make_object(rng)
-    return ShapeObject(KINDS[kind](rng), rng.uniform(0.15, 0.95, (2, 3)), rng.uniform(0, 2 * math.pi),
-                       float(rng.integers(4, 9)))
+    return ShapeObject(
+        KINDS[kind](rng), rng.uniform(0.15, 0.95, (2, 3)), rng.uniform(0, 2 * math.pi), float(rng.integers(4, 9))
+    )
 
 
 CLOSE_UP_DISTANCE = 2.0  # training cameras of --close-up: the object (about 1.1 across its centre) overfills them
@@ -282,8 +290,9 @@ def sphere_positions(n: int, radius: float = RADIUS) -> list[np.ndarray]:
     return out
 
 
-def camera_positions(n: int, rng: np.random.Generator, train: bool, close_up: bool = False,
-                     sphere: bool = False) -> list[np.ndarray]:
+def camera_positions(
+    n: int, rng: np.random.Generator, train: bool, close_up: bool = False, sphere: bool = False
+) -> list[np.ndarray]:
     """Training views go around the object from above; test views around it at -10..50 degrees of
     elevation, or over the whole sphere with `sphere`."""
     if sphere and not train:
@@ -301,8 +310,17 @@ def camera_positions(n: int, rng: np.random.Generator, train: bool, close_up: bo
     return out
 
 
-def make_scene(out: Path, seed: int = 0, size: int = 128, n_train: int = 4, n_test: int = 16,
-               room: bool = False, close_up: bool = False, kind: str = "blobs", sphere: bool = False) -> Path:
+def make_scene(
+    out: Path,
+    seed: int = 0,
+    size: int = 128,
+    n_train: int = 4,
+    n_test: int = 16,
+    room: bool = False,
+    close_up: bool = False,
+    kind: str = "blobs",
+    sphere: bool = False,
+) -> Path:
     rng = np.random.default_rng(seed)
     parts = make_shape(kind, rng)
     out.mkdir(parents=True, exist_ok=True)
@@ -328,10 +346,17 @@ def main() -> None:
     ap.add_argument("--train", type=int, default=4)
     ap.add_argument("--test", type=int, default=16)
     ap.add_argument("--room", action="store_true", help="the object in a room, photos without masks")
-    ap.add_argument("--close-up", action="store_true",
-                    help="training photos from one side, so close that the object runs out of every one")
-    ap.add_argument("--kind", choices=tuple(KINDS), default="blobs",
-                    help="the object: textured ellipsoids, or a round, boxy or thin-parted solid")
+    ap.add_argument(
+        "--close-up",
+        action="store_true",
+        help="training photos from one side, so close that the object runs out of every one",
+    )
+    ap.add_argument(
+        "--kind",
+        choices=tuple(KINDS),
+        default="blobs",
+        help="the object: textured ellipsoids, or a round, boxy or thin-parted solid",
+    )
     ap.add_argument("--sphere", action="store_true", help="test views spread over the whole sphere")
     a = ap.parse_args()
     make_scene(a.out, a.seed, a.size, a.train, a.test, a.room, a.close_up, a.kind, a.sphere)

@@ -117,8 +117,10 @@ def to_colmap(src: Path, dst: Path) -> Path:
     for name, rgb, alpha, _, _ in views:
         write_png(dst / "images" / name, rgb)
         write_png(dst / "masks" / name, alpha)
-    write_model(dst / "sparse" / "0", {v[0]: Camera(torch.from_numpy(v[3]), torch.from_numpy(v[4]), v[1].shape[1],
-                                                   v[1].shape[0]) for v in views})
+    write_model(
+        dst / "sparse" / "0",
+        {v[0]: Camera(torch.from_numpy(v[3]), torch.from_numpy(v[4]), v[1].shape[1], v[1].shape[0]) for v in views},
+    )
     return dst
 
 
@@ -129,8 +131,7 @@ def to_ngp(src: Path, dst: Path) -> Path:
         write_png(dst / "images" / name, rgb)
         write_png(dst / "masks" / name, alpha)
         c2w = invert_rigid(w2c) @ GL_TO_CV  # back to OpenGL
-        frames.append({"file_path": f"images/{name}", "mask_path": f"masks/{name}",
-                       "transform_matrix": c2w.tolist()})
+        frames.append({"file_path": f"images/{name}", "mask_path": f"masks/{name}", "transform_matrix": c2w.tolist()})
     K = views[0][3]
     h, w = views[0][1].shape[:2]
     meta = {"fl_x": K[0, 0], "fl_y": K[1, 1], "cx": K[0, 2], "cy": K[1, 2], "w": w, "h": h, "frames": frames}
@@ -174,8 +175,11 @@ def finished_workspace(tmp_path_factory) -> tuple[Path, str]:
     base = tmp_path_factory.mktemp("finished")
     scene = make_scene(base / "scene", seed=2, size=64, n_train=4, n_test=5)
     (base / "wgs.toml").write_text(TINY)
-    res = CliRunner().invoke(cli, ["-q", "--config", str(base / "wgs.toml"), "-w", str(base / "ws"), "all",
-                                   str(scene)], catch_exceptions=False)
+    res = CliRunner().invoke(
+        cli,
+        ["-q", "--config", str(base / "wgs.toml"), "-w", str(base / "ws"), "all", str(scene)],
+        catch_exceptions=False,
+    )
     assert res.exit_code == 0, res.output
     return base, res.output
 
@@ -196,8 +200,9 @@ def lego_or_skip() -> Path:
 
 def run_cli(args, cwd: Path, timeout: float = 180) -> subprocess.CompletedProcess:
     """Run `wgs` in a subprocess, as a shell would (main() maps errors to exit codes)."""
-    return subprocess.run([sys.executable, "-m", "wgs", *map(str, args)], capture_output=True, text=True, cwd=cwd,
-                          timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "wgs", *map(str, args)], capture_output=True, text=True, cwd=cwd, timeout=timeout
+    )
 
 
 def expect_error(cwd: Path, args, *needles: str, code: int = 2) -> str:
@@ -258,3 +263,10 @@ def ring_w2c(n=4, radius=1.0, height=0.3, jitter=0.0, seed=0):
         eye = np.array([radius * math.cos(a), radius * math.sin(a), height * radius])
         out.append(look_at(eye, np.zeros(3), np.array([0.0, 0.0, 1.0])))
     return out
+
+
+def pytest_collection_modifyitems(config, items):
+    """The tests marked slow first (longest first, as a scheduler would have them): with one
+    pytest-xdist worker per core, a long test started last would keep one worker busy while the
+    others have finished."""
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)

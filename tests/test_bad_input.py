@@ -178,13 +178,16 @@ def test_huge_image_refused(scene_copy, tmp_path):
     expect_error(tmp_path, prep(scene_copy, tmp_path, "--max-pixels", "100"), "r_0.png", "--max-pixels")
 
 
-@pytest.mark.parametrize("toml,needle", [
-    ("[coarse]\niterationz = 5\n", "coarse.iterationz"),
-    ("[coarse]\niterations = 'many'\n", "coarse.iterations"),
-    ("[nosuchstage]\nx = 1\n", "nosuchstage"),
-    ("seed = 'x'\n", "seed"),
-    ("[coarse\n", "not valid TOML"),
-])
+@pytest.mark.parametrize(
+    "toml,needle",
+    [
+        ("[coarse]\niterationz = 5\n", "coarse.iterationz"),
+        ("[coarse]\niterations = 'many'\n", "coarse.iterations"),
+        ("[nosuchstage]\nx = 1\n", "nosuchstage"),
+        ("seed = 'x'\n", "seed"),
+        ("[coarse\n", "not valid TOML"),
+    ],
+)
 def test_bad_config(scene_copy, tmp_path, toml, needle):
     cfg = tmp_path / "wgs.toml"
     cfg.write_text(toml)

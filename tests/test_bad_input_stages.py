@@ -16,7 +16,7 @@ import torch
 from conftest import expect_error, make_scene, run_cli, to_idr
 
 from wgs.config import as_dict, load_config_file
-from wgs.context import Ctx
+from wgs.context import RunOptions
 from wgs.io.images import read_image, write_png
 from wgs.workspace import Workspace
 
@@ -66,8 +66,9 @@ def test_exr_that_is_not_an_exr(ws):
 def test_truncated_checkpoint(ws):
     ck = ws / "1_coarse/ckpt.pt"
     ck.write_bytes(ck.read_bytes()[: ck.stat().st_size // 2])
-    expect_error(ws.parent, wgs(ws, "render", "--stage", "coarse", "--views", "test"), "ckpt.pt",
-                 "not a valid wgs checkpoint")
+    expect_error(
+        ws.parent, wgs(ws, "render", "--stage", "coarse", "--views", "test"), "ckpt.pt", "not a valid wgs checkpoint"
+    )
 
 
 def resave(ck: Path, edit) -> None:
@@ -164,8 +165,9 @@ def test_frame_that_is_not_an_object(tmp_path, blender_scene):
     meta = json.loads((scene / "transforms_train.json").read_text())
     meta["frames"][1] = "r_1.png"
     (scene / "transforms_train.json").write_text(json.dumps(meta))
-    expect_error(tmp_path, ["-q", "-w", tmp_path / "ws", "prepare", scene], "transforms_train.json",
-                 "frame 1 is not an object")
+    expect_error(
+        tmp_path, ["-q", "-w", tmp_path / "ws", "prepare", scene], "transforms_train.json", "frame 1 is not an object"
+    )
 
 
 def test_damaged_resume_state(ws):
@@ -174,14 +176,15 @@ def test_damaged_resume_state(ws):
     rdir = ws / ".resume" / "5_fine"
     (rdir / "out").mkdir(parents=True)
     (rdir / "gf.pt").write_bytes(b"PK\x03\x04 damaged")
-    ctx = Ctx(ws, "cpu", 0, False, load_config_file(ws.parent / "wgs.toml"))
+    ctx = RunOptions(ws, "cpu", 0, False, load_config_file(ws.parent / "wgs.toml"))
     fp = Workspace(ws).stage_fingerprint("fine", as_dict(ctx.config("fine", None)), {"seed": 0})
     (rdir / "fingerprint").write_text(fp)  # the saved state belongs to this very run
     expect_error(ws.parent, wgs(ws, "fine", resume=True), "gf.pt", "without --resume")
 
 
-@pytest.mark.parametrize("name,needle", [(b"../../outside.png", b"points outside the scene folder"),
-                                         (b"caf\xe9.png", b"not valid UTF-8")])
+@pytest.mark.parametrize(
+    "name,needle", [(b"../../outside.png", b"points outside the scene folder"), (b"caf\xe9.png", b"not valid UTF-8")]
+)
 def test_colmap_image_name_escaping_or_not_utf8(tmp_path, blender_scene, name, needle):
     from conftest import to_colmap
 
@@ -195,7 +198,7 @@ def test_colmap_image_name_escaping_or_not_utf8(tmp_path, blender_scene, name, n
 
 @pytest.mark.parametrize("damage", ["truncated", "missing"])
 def test_damaged_or_missing_prior_weights(ws, tmp_path, damage):
-    from wgs.prior import WEIGHTS
+    from wgs.weights import WEIGHTS
 
     prior = tmp_path / "prior"
     shutil.copytree(WEIGHTS, prior)
@@ -222,6 +225,7 @@ def test_wgs_reads_no_file_with_pickle_code():
             if isinstance(node, ast.Call) and ast.unparse(node.func) == "torch.load":
                 loads += 1
                 flags = {k.arg: k.value for k in node.keywords}
-                assert isinstance(flags.get("weights_only"), ast.Constant) and flags["weights_only"].value is True, \
+                assert isinstance(flags.get("weights_only"), ast.Constant) and flags["weights_only"].value is True, (
                     f"{p}:{node.lineno}"
+                )
     assert loads >= 2

@@ -101,12 +101,14 @@ def test_scene_list_parsing_and_its_errors(scenes, tmp_path):
     globbed = read_scene_list(str(scenes / "data" / "*"), cli.commands["all"])
     assert [t.name for t in globbed] == ["apple", "broken", "cube"]
     bad = tmp_path / "bad.txt"
-    for text, needle in [(f"{scenes}/data/apple --viewz 4\n", "line 1: No such option '--viewz'"),
-                         (f"{scenes}/data/apple --views four\n", "line 1: Invalid value for '--views'"),
-                         (f"{scenes}/data/nothere\n", "line 1: scene folder not found"),
-                         (f"{scenes}/data/apple -w elsewhere\n", "line 1: -w is set by wgs batch"),
-                         (f"{scenes}/data/apple\n{scenes}/data/apple\n", "two scenes are named 'apple'"),
-                         ("# nothing\n", "names no scene")]:
+    for text, needle in [
+        (f"{scenes}/data/apple --viewz 4\n", "line 1: No such option '--viewz'"),
+        (f"{scenes}/data/apple --views four\n", "line 1: Invalid value for '--views'"),
+        (f"{scenes}/data/nothere\n", "line 1: scene folder not found"),
+        (f"{scenes}/data/apple -w elsewhere\n", "line 1: -w is set by wgs batch"),
+        (f"{scenes}/data/apple\n{scenes}/data/apple\n", "two scenes are named 'apple'"),
+        ("# nothing\n", "names no scene"),
+    ]:
         bad.write_text(text)
         with pytest.raises(InputError, match=re.escape(needle)):
             read_scene_list(str(bad), cli.commands["all"])
@@ -117,8 +119,26 @@ def test_slurm_path_through_submitit_local_executor(scenes, tmp_path):
     pytest.importorskip("submitit")
     (tmp_path / "one.txt").write_text(f"{scenes}/data/cube\n")
     root = tmp_path / "out"
-    proc = run_cli(["--config", scenes / "wgs.toml", "batch", tmp_path / "one.txt", "-o", root, "--executor",
-                    "slurm", "--cluster", "local", "--time-min", "10", "--cpus", "1"], tmp_path, timeout=600)
+    proc = run_cli(
+        [
+            "--config",
+            scenes / "wgs.toml",
+            "batch",
+            tmp_path / "one.txt",
+            "-o",
+            root,
+            "--executor",
+            "slurm",
+            "--cluster",
+            "local",
+            "--time-min",
+            "10",
+            "--cpus",
+            "1",
+        ],
+        tmp_path,
+        timeout=600,
+    )
     assert proc.returncode == 0, proc.stderr
     assert "submitted 1 job(s) to local" in proc.stderr
     assert (root / "cube" / "6_eval" / "results.json").is_file()

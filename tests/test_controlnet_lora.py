@@ -17,15 +17,41 @@ def build_tiny_sd(root):
 
     torch.manual_seed(0)
     unet = UNet2DConditionModel(
-        block_out_channels=(8, 16), layers_per_block=1, sample_size=4, in_channels=4, out_channels=4,
-        down_block_types=("CrossAttnDownBlock2D", "DownBlock2D"), up_block_types=("UpBlock2D", "CrossAttnUpBlock2D"),
-        cross_attention_dim=16, norm_num_groups=4, attention_head_dim=2)
-    vae = AutoencoderKL(block_out_channels=(4, 4, 4, 4), in_channels=3, out_channels=3, latent_channels=4,
-                        down_block_types=("DownEncoderBlock2D",) * 4, up_block_types=("UpDecoderBlock2D",) * 4,
-                        norm_num_groups=2, layers_per_block=1)
-    text = CLIPTextModel(CLIPTextConfig(bos_token_id=0, eos_token_id=1, pad_token_id=1, hidden_size=16,
-                                        intermediate_size=32, num_attention_heads=2, num_hidden_layers=1,
-                                        vocab_size=100, max_position_embeddings=77, projection_dim=16))
+        block_out_channels=(8, 16),
+        layers_per_block=1,
+        sample_size=4,
+        in_channels=4,
+        out_channels=4,
+        down_block_types=("CrossAttnDownBlock2D", "DownBlock2D"),
+        up_block_types=("UpBlock2D", "CrossAttnUpBlock2D"),
+        cross_attention_dim=16,
+        norm_num_groups=4,
+        attention_head_dim=2,
+    )
+    vae = AutoencoderKL(
+        block_out_channels=(4, 4, 4, 4),
+        in_channels=3,
+        out_channels=3,
+        latent_channels=4,
+        down_block_types=("DownEncoderBlock2D",) * 4,
+        up_block_types=("UpDecoderBlock2D",) * 4,
+        norm_num_groups=2,
+        layers_per_block=1,
+    )
+    text = CLIPTextModel(
+        CLIPTextConfig(
+            bos_token_id=0,
+            eos_token_id=1,
+            pad_token_id=1,
+            hidden_size=16,
+            intermediate_size=32,
+            num_attention_heads=2,
+            num_hidden_layers=1,
+            vocab_size=100,
+            max_position_embeddings=77,
+            projection_dim=16,
+        )
+    )
     tok_dir = root / "tok"
     tok_dir.mkdir()
     chars = "abcdefghijklmnopqrstuvwxyz0123456789"
@@ -36,10 +62,19 @@ def build_tiny_sd(root):
     (tok_dir / "vocab.json").write_text(json.dumps(vocab))
     (tok_dir / "merges.txt").write_text("#version: 0.2\n")
     tokenizer = CLIPTokenizer.from_pretrained(str(tok_dir), model_max_length=77)  # as the real one
-    sched = DDIMScheduler(beta_schedule="scaled_linear", beta_start=0.00085, beta_end=0.012, clip_sample=False,
-                          set_alpha_to_one=False)
-    pipe = StableDiffusionPipeline(vae=vae, text_encoder=text, tokenizer=tokenizer, unet=unet, scheduler=sched,
-                                   safety_checker=None, feature_extractor=None, requires_safety_checker=False)
+    sched = DDIMScheduler(
+        beta_schedule="scaled_linear", beta_start=0.00085, beta_end=0.012, clip_sample=False, set_alpha_to_one=False
+    )
+    pipe = StableDiffusionPipeline(
+        vae=vae,
+        text_encoder=text,
+        tokenizer=tokenizer,
+        unet=unet,
+        scheduler=sched,
+        safety_checker=None,
+        feature_extractor=None,
+        requires_safety_checker=False,
+    )
     pipe.save_pretrained(str(root / "sd"))
     ControlNetModel.from_unet(unet, conditioning_embedding_out_channels=(4, 4, 4, 4)).save_pretrained(str(root / "cn"))
     return root / "sd", root / "cn"
@@ -59,9 +94,11 @@ def test_one_lora_step_changes_only_lora_weights(tiny_sd):
     pipe = cl.load_pipeline(*tiny_sd, torch.device("cpu"))
     params = cl.add_lora(pipe, rank=4)
     assert params and all(p.requires_grad for p in params)
-    named = {f"{m}.{n}": p.detach().clone() for m, mod in (("unet", pipe.unet), ("cn", pipe.controlnet),
-                                                           ("vae", pipe.vae), ("text", pipe.text_encoder))
-             for n, p in mod.named_parameters()}
+    named = {
+        f"{m}.{n}": p.detach().clone()
+        for m, mod in (("unet", pipe.unet), ("cn", pipe.controlnet), ("vae", pipe.vae), ("text", pipe.text_encoder))
+        for n, p in mod.named_parameters()
+    }
     # LoRA B starts at zero (a no-op); give it values so the step moves both A and B
     with torch.no_grad():
         for p in params:
@@ -104,7 +141,6 @@ def test_finetune_and_repair_stages_with_controlnet(tiny_sd, tmp_path):
 
     from wgs.cli import cli
     from wgs.workspace import Workspace
-
 
     scene = make_scene(tmp_path / "scene", seed=6, size=48, n_train=4, n_test=2)
     cfg = tmp_path / "wgs.toml"

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 import wgs.context as context_module
-from wgs.context import Ctx
+from wgs.context import RunOptions
 from wgs.device import resolve_device
 from wgs.errors import WgsError
 
@@ -24,11 +24,14 @@ def test_cuda_without_cuda_is_refused():
         resolve_device("cuda")
 
 
-@pytest.mark.parametrize("device, has_gsplat, expect", [
-    ("cpu", False, "rasterizer: numba"),
-    ("cuda", False, "rasterizer: torch (the reference"),
-    ("cuda", True, "rasterizer: gsplat"),
-])
+@pytest.mark.parametrize(
+    "device, has_gsplat, expect",
+    [
+        ("cpu", False, "rasterizer: numba"),
+        ("cuda", False, "rasterizer: torch (the reference"),
+        ("cuda", True, "rasterizer: gsplat"),
+    ],
+)
 def test_the_device_line_names_the_rasterizer(monkeypatch, device, has_gsplat, expect):
     import wgs.device
     import wgs.gaussians.render as render
@@ -37,6 +40,6 @@ def test_the_device_line_names_the_rasterizer(monkeypatch, device, has_gsplat, e
     monkeypatch.setattr(context_module, "log", lines.append)
     monkeypatch.setattr(wgs.device, "resolve_device", lambda spec: torch.device(device))
     monkeypatch.setattr(render, "_has_gsplat", lambda: has_gsplat)
-    Ctx(workspace=None, device=device, seed=0, debug=False).torch_device()
+    RunOptions(workspace=None, device=device, seed=0, debug=False).torch_device()
     assert lines and expect in lines[0]
     assert ("wgs[cuda]" in lines[0]) == (expect.startswith("rasterizer: torch"))

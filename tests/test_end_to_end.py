@@ -13,20 +13,37 @@ from wgs.cli import cli
 from wgs.workspace import Workspace
 
 CONTRACT = [
-    "scene/scene.json", "scene/sparse/cameras.txt", "scene/sparse/images.txt", "scene/split_train.txt",
-    "1_coarse/ckpt.pt", "1_coarse/point_cloud.ply", "1_coarse/train_psnr.json",
-    "2_mask_data/index.json", "3_finetune/D/model.safetensors", "3_finetune/D/config.json",
-    "3_finetune/curves.json", "3_finetune/curves.png",
-    "4_repair/views.json", "4_repair/contact_sheet.png", "5_fine/ckpt.pt", "5_fine/point_cloud.ply",
-    "6_eval/results.json", "6_eval/per_view.json", "6_eval/per_view_coarse.json", "6_eval/report.md",
-    "6_eval/error_vs_time.png", "6_eval/report.html", "6_eval/turntable.gif",
+    "scene/scene.json",
+    "scene/sparse/cameras.txt",
+    "scene/sparse/images.txt",
+    "scene/split_train.txt",
+    "1_coarse/ckpt.pt",
+    "1_coarse/point_cloud.ply",
+    "1_coarse/train_psnr.json",
+    "2_mask_data/index.json",
+    "3_finetune/D/model.safetensors",
+    "3_finetune/D/config.json",
+    "3_finetune/curves.json",
+    "3_finetune/curves.png",
+    "4_repair/views.json",
+    "4_repair/contact_sheet.png",
+    "5_fine/ckpt.pt",
+    "5_fine/point_cloud.ply",
+    "6_eval/results.json",
+    "6_eval/per_view.json",
+    "6_eval/per_view_coarse.json",
+    "6_eval/report.md",
+    "6_eval/error_vs_time.png",
+    "6_eval/report.html",
+    "6_eval/turntable.gif",
 ]
 STAGES = ["scene", "coarse", "mask_data", "finetune", "repair", "fine", "eval"]
 
 
 def run_all(cfg, ws, scene, *extra):
-    res = CliRunner().invoke(cli, ["-q", "--config", str(cfg), "-w", str(ws), "all", str(scene), *extra],
-                             catch_exceptions=False)
+    res = CliRunner().invoke(
+        cli, ["-q", "--config", str(cfg), "-w", str(ws), "all", str(scene), *extra], catch_exceptions=False
+    )
     assert res.exit_code == 0, res.output
     return res
 
@@ -41,8 +58,9 @@ def tiny(finished_workspace, tmp_path_factory):
 
 
 def finished(ws: Workspace) -> dict[str, str]:
-    return {s: (ws.manifest(s) or {}).get("finished", "") + str((ws.manifest(s) or {}).get("wall_time_s"))
-            for s in STAGES}
+    return {
+        s: (ws.manifest(s) or {}).get("finished", "") + str((ws.manifest(s) or {}).get("wall_time_s")) for s in STAGES
+    }
 
 
 def test_workspace_contract_and_results(tiny):
@@ -98,8 +116,9 @@ def test_render_defaults_to_the_newest_model(tiny):
     assert res.exit_code == 0, res.output
     assert len(list((ws.root / "renders" / "fine_test").glob("*.png"))) == 5
     assert not (ws.root / "renders" / "coarse_test").exists()
-    res = CliRunner().invoke(cli, ["-q", "-w", str(ws.root), "render", "--views", "path", "--frames", "3", "--video"],
-                             catch_exceptions=False)
+    res = CliRunner().invoke(
+        cli, ["-q", "-w", str(ws.root), "render", "--views", "path", "--frames", "3", "--video"], catch_exceptions=False
+    )
     assert res.exit_code == 0, res.output
     from PIL import Image
 
@@ -128,7 +147,7 @@ def test_baseline_plain_3dgs_for_the_same_time(tiny, tmp_path):
 
 
 def test_repair_gain_at_test_poses_spread_over_them(tiny, tmp_path):
-    from wgs.stages.s6_eval import spread
+    from wgs.stages.s6_eval.scoring import spread
 
     assert spread(list(range(200)), 50) == list(range(0, 200, 4))
     assert spread(list(range(7)), 3) == [0, 2, 4]
@@ -136,8 +155,11 @@ def test_repair_gain_at_test_poses_spread_over_them(tiny, tmp_path):
     _, cfg, ws0, _ = tiny
     ws = tmp_path / "ws"
     shutil.copytree(ws0.root, ws)
-    res = CliRunner().invoke(cli, ["-q", "--config", str(cfg), "-w", str(ws), "eval", "--force",
-                                   "--repair-gain-views", "2"], catch_exceptions=False)
+    res = CliRunner().invoke(
+        cli,
+        ["-q", "--config", str(cfg), "-w", str(ws), "eval", "--force", "--repair-gain-views", "2"],
+        catch_exceptions=False,
+    )
     assert res.exit_code == 0, res.output
     out = json.loads((ws / "6_eval/results.json").read_text())
     names = list(json.loads((ws / "6_eval/per_view.json").read_text())["psnr"])  # in the test views' order
@@ -163,8 +185,11 @@ def test_second_run_recomputes_nothing_and_fine_option_reruns_fine_and_eval(tiny
     # a second round: the refined model's renders repaired again, trained on again
     # from G_c instead of the visual hull (a masked scene's default)
     assert ws.manifest("fine")["start"] == "carved hull"  # the shipped S carved the hull in the repair stage
-    res = CliRunner().invoke(cli, ["-q", "--config", str(cfg2), "-w", str(ws.root), "fine", "--rounds", "2",
-                                   "--start", "coarse"], catch_exceptions=False)
+    res = CliRunner().invoke(
+        cli,
+        ["-q", "--config", str(cfg2), "-w", str(ws.root), "fine", "--rounds", "2", "--start", "coarse"],
+        catch_exceptions=False,
+    )
     assert res.exit_code == 0, res.output
     m = ws.manifest("fine")
     assert m["rounds"] == 2 and m["iterations"] == 12 and math.isfinite(m["final_loss"])
@@ -180,8 +205,11 @@ def test_left_out_without_masks_and_test_views(tiny, tmp_path):
     for p in d.rglob("*.png"):
         write_png(p, read_image(p)[..., :3])  # RGB only: no alpha, so no masks
     (d / "transforms_test.json").unlink()
-    res = CliRunner().invoke(cli, ["--config", str(cfg), "-w", str(tmp_path / "ws"), "all", str(d), "--views", "4",
-                                   "--masks", "none"], catch_exceptions=False)
+    res = CliRunner().invoke(
+        cli,
+        ["--config", str(cfg), "-w", str(tmp_path / "ws"), "all", str(d), "--views", "4", "--masks", "none"],
+        catch_exceptions=False,
+    )
     assert res.exit_code == 0, res.output
     ws = Workspace(tmp_path / "ws")
     assert ws.manifest("fine")["start"] == "coarse"  # no masks, no visual hull: G_f starts from G_c
@@ -194,8 +222,9 @@ def test_left_out_without_masks_and_test_views(tiny, tmp_path):
 def test_many_views_leave_out_repair(tmp_path, tiny):
     _, cfg, _, _ = tiny
     scene = make_scene(tmp_path / "many", seed=3, size=32, n_train=12, n_test=2)
-    res = CliRunner().invoke(cli, ["--config", str(cfg), "-w", str(tmp_path / "ws"), "all", str(scene)],
-                             catch_exceptions=False)
+    res = CliRunner().invoke(
+        cli, ["--config", str(cfg), "-w", str(tmp_path / "ws"), "all", str(scene)], catch_exceptions=False
+    )
     assert res.exit_code == 0, res.output
     ws = Workspace(tmp_path / "ws")
     assert ws.manifest("mask_data") is None and ws.manifest("fine") is None
@@ -226,17 +255,28 @@ def screenshots(urls: list[str], tmp_path, done=lambda url, shot: True) -> list:
         pytest.skip("Chromium is not installed (apt install chromium): no screenshots")
     out = []
     with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=chromium(), args=[
-            "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
-            "--disable-background-networking", "--disable-component-update", "--disable-sync"])
+        browser = p.chromium.launch(
+            executable_path=chromium(),
+            args=[
+                "--no-sandbox",
+                "--use-angle=swiftshader",
+                "--enable-unsafe-swiftshader",
+                "--disable-background-networking",
+                "--disable-component-update",
+                "--disable-sync",
+            ],
+        )
         try:
             page = browser.new_page(viewport={"width": 640, "height": 480})
             errors = []
             page.on("pageerror", lambda e: errors.append(e))
             for i, url in enumerate(urls):
                 page.goto(url)
-                page.wait_for_function("document.readyState === 'complete' && (!document.getElementById('canvas')"
-                                       " || document.body.dataset.ready)", timeout=60000)
+                page.wait_for_function(
+                    "document.readyState === 'complete' && (!document.getElementById('canvas')"
+                    " || document.body.dataset.ready)",
+                    timeout=60000,
+                )
                 path = tmp_path / f"shot{i}.png"
                 for _ in range(30):
                     time.sleep(1)
@@ -272,8 +312,9 @@ def test_viewer_serves_the_model_and_the_report(tiny, tmp_path):
         assert b"MIT License" in urlopen(url + "LICENSE.gsplat").read()
         with pytest.raises(HTTPError):
             urlopen(url + "../scene/scene.json")
-        viewer, report = screenshots([url, url + "report.html"], tmp_path,
-                                     done=lambda u, shot: u.endswith(".html") or drawn(shot))
+        viewer, report = screenshots(
+            [url, url + "report.html"], tmp_path, done=lambda u, shot: u.endswith(".html") or drawn(shot)
+        )
         assert drawn(viewer), "the viewer's canvas is blank"
         assert report.std() > 0.05 and (report.mean(-1) < 0.5).mean() > 0.005, "the report is blank"
 
@@ -282,8 +323,9 @@ def test_export_ply_and_splat(tiny, tmp_path):
     _, cfg, ws, _ = tiny
     for fmt in ("ply", "splat"):
         out = tmp_path / f"model.{fmt}"
-        res = CliRunner().invoke(cli, ["-w", str(ws.root), "export", "--format", fmt, "-o", str(out)],
-                                 catch_exceptions=False)
+        res = CliRunner().invoke(
+            cli, ["-w", str(ws.root), "export", "--format", fmt, "-o", str(out)], catch_exceptions=False
+        )
         assert res.exit_code == 0, res.output
         data = out.read_bytes()
         if fmt == "ply":
@@ -317,8 +359,9 @@ def sure_background_model(kind: str):
     return net
 
 
-@pytest.mark.parametrize("kind, setting, record", [("S", "silhouette_model", "carving"),
-                                                   ("V", "volume_model", "volume_carving")])
+@pytest.mark.parametrize(
+    "kind, setting, record", [("S", "silhouette_model", "carving"), ("V", "volume_model", "volume_carving")]
+)
 def test_a_carving_model_carves_the_hull_and_fine_starts_there(tiny, tmp_path, kind, setting, record):
     """With an S or a V at hand (here one that calls everything background), the repair stage writes
     the pseudo views' silhouettes and a carved hull that still covers every real mask pixel, and G_f
@@ -332,8 +375,9 @@ def test_a_carving_model_carves_the_hull_and_fine_starts_there(tiny, tmp_path, k
     ws = Workspace(tmp_path / "ws")
     shutil.copytree(ws0.root, ws.root)
     cfg2 = tmp_path / "wgs.toml"
-    cfg2.write_text(cfg.read_text().replace("[repair]\n", f"[repair]\n{setting} = '{tmp_path / kind}'\n"
-                                                         "volume_check_margin = 1.0\n"))
+    cfg2.write_text(
+        cfg.read_text().replace("[repair]\n", f"[repair]\n{setting} = '{tmp_path / kind}'\nvolume_check_margin = 1.0\n")
+    )
     run_all(cfg2, ws.root, scene)
     views = json.loads(ws.output("repair", "views").read_text())["views"]
     assert all((ws.stage_dir("repair") / v["silhouette"]).is_file() for v in views)
@@ -360,8 +404,9 @@ def mirrored(finished_workspace, tmp_path_factory):
     base, _ = finished_workspace
     root = tmp_path_factory.mktemp("mirrored")
     cfg = root / "wgs.toml"
-    cfg.write_text(TINY.replace('mirror = "none"', 'mirror = "outline"\nmirror_directions = 60\n'
-                                                   "mirror_max_missed = 0.05"))
+    cfg.write_text(
+        TINY.replace('mirror = "none"', 'mirror = "outline"\nmirror_directions = 60\nmirror_max_missed = 0.05')
+    )
     run_all(cfg, root / "ws", base / "scene")
     return Workspace(root / "ws")
 

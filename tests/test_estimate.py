@@ -25,8 +25,9 @@ from wgs.estimate import (
 from wgs.scene.prepare import downscale_for
 
 # about this 2-core CPU's figures (a calibration made here)
-CAL = Calibration(raster=(0.008, 5.5e-7), d_step_s=0.12,
-                  d_forward_s_per_pixel=2.3e-6, threads=2, device="cpu", seconds=3.0)
+CAL = Calibration(
+    raster=(0.008, 5.5e-7), d_step_s=0.12, d_forward_s_per_pixel=2.3e-6, threads=2, device="cpu", seconds=3.0
+)
 
 
 def configs(preset=None, **tables):
@@ -91,7 +92,9 @@ def test_choose_downscale_cpu_target_and_gpu():
     assert sum(stage_seconds(CAL, configs(), dataclasses.replace(facts, width=w, height=h)).values()) > 600.0
     # an impossible target: the smallest allowed size, and a time over the target
     k, t = choose_downscale(CAL, configs(), facts, 1.0)
-    assert max(4000 // k, 4000 // k) <= MIN_SIZE and t > 1.0
+    assert 4000 // (k + 1) < MIN_SIZE <= 4000 // k and t > 1.0
+    # photos under twice that size keep their own, however slow the machine
+    assert choose_downscale(CAL, configs(), SceneFacts(128, 96, 4, 8, full_pixels=128 * 96), 1.0)[0] == 1
     gpu = dataclasses.replace(CAL, device="cuda:0")
     assert choose_downscale(gpu, configs(), facts, None) == (downscale_for(4000, 4000, GPU_MAX_SIZE), None)
 
@@ -105,8 +108,9 @@ def test_budget_plan_fills_the_budget():
         for t in ("coarse", "mask_data", "fine"):
             boxed = plan["stages"][t]
             assert boxed.max_seconds > 0 and boxed.iterations >= cfgs[t].iterations
-            assert boxed.refine_stop / boxed.iterations == pytest.approx(cfgs[t].refine_stop / cfgs[t].iterations,
-                                                                          rel=0.01)
+            assert boxed.refine_stop / boxed.iterations == pytest.approx(
+                cfgs[t].refine_stop / cfgs[t].iterations, rel=0.01
+            )
     # stages left out get no share
     plan = budget_plan(CAL, cfgs, facts, 300.0, runs=("coarse", "eval"))
     assert set(plan["seconds"]) == {"coarse", "eval"}

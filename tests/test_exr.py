@@ -31,8 +31,11 @@ def test_half_roundtrip_bit_exact(tmp_path):
 
 def test_channel_order_preserved(tmp_path):
     # distinct constant per channel, names that sort differently from insertion order
-    b = {"ZZ": np.zeros((2, 3, 3), np.float32), "AA": np.ones((2, 3, 3), np.float32),
-         "M": np.zeros((2, 3, 1), np.float32)}
+    b = {
+        "ZZ": np.zeros((2, 3, 3), np.float32),
+        "AA": np.ones((2, 3, 3), np.float32),
+        "M": np.zeros((2, 3, 1), np.float32),
+    }
     b["ZZ"][..., :] = [1, 2, 3]
     b["AA"][..., :] = [4, 5, 6]
     b["M"][...] = 7
@@ -41,10 +44,6 @@ def test_channel_order_preserved(tmp_path):
     np.testing.assert_array_equal(out["ZZ"][0, 0], [1, 2, 3])
     np.testing.assert_array_equal(out["AA"][0, 0], [4, 5, 6])
     assert out["M"].shape == (2, 3, 1) and out["M"][0, 0, 0] == 7
-
-
-
-
 
 
 @pytest.mark.parametrize("damage", ["truncate", "garbage", "missing"])

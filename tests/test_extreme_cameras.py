@@ -3,7 +3,6 @@ training cameras.
 
 Every case and its pass criterion is listed in docs/stability.md."""
 
-
 import json
 import math
 import shutil

@@ -3,7 +3,6 @@ error bounds.
 
 Every case and its pass criterion is listed in docs/stability.md."""
 
-
 import pytest
 import torch
 from test_haar import rel_err

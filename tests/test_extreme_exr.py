@@ -3,7 +3,6 @@ values refused.
 
 Every case and its pass criterion is listed in docs/stability.md."""
 
-
 import numpy as np
 import pytest
 

@@ -2,7 +2,6 @@
 
 Every case and its pass criterion is listed in docs/stability.md."""
 
-
 import math
 
 import pytest

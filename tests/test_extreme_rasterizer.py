@@ -31,9 +31,19 @@ def camera(fov_deg=60.0, size=SIZE):
 def check(p, backend, fov=60.0, size=SIZE):
     leaves = {k: v.detach().clone().requires_grad_(True) for k, v in p.items()}
     viewmat, K = camera(fov, size)
-    rgb, alpha, meta = rasterize(leaves["means"], leaves["quats"], torch.exp(leaves["log_scales"]),
-                                 torch.sigmoid(leaves["logit_opac"]), leaves["colors"], viewmat, K, size, size,
-                                 torch.tensor([1.0, 1.0, 1.0]), backend=backend)
+    rgb, alpha, meta = rasterize(
+        leaves["means"],
+        leaves["quats"],
+        torch.exp(leaves["log_scales"]),
+        torch.sigmoid(leaves["logit_opac"]),
+        leaves["colors"],
+        viewmat,
+        K,
+        size,
+        size,
+        torch.tensor([1.0, 1.0, 1.0]),
+        backend=backend,
+    )
     assert torch.isfinite(rgb).all() and torch.isfinite(alpha).all()
     assert (alpha >= 0).all() and (alpha <= 1).all()
     (rgb.sum() + alpha.sum()).backward()

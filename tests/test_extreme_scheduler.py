@@ -3,7 +3,6 @@ predictions.
 
 Every case and its pass criterion is listed in docs/stability.md."""
 
-
 import pytest
 import torch
 

@@ -3,7 +3,6 @@ group, nothing saved.
 
 Every case and its pass criterion is listed in docs/stability.md."""
 
-
 import pytest
 import torch
 from conftest import ring_w2c
@@ -14,13 +13,18 @@ from wgs.gaussians.splats import create_splats
 from wgs.gaussians.trainer import train_gaussians
 from wgs.resume import Checkpointer
 from wgs.scene.dataset import Frame
-from wgs.stages.s3_finetune import train_scratch_d
+from wgs.training.per_object import train_scratch_d
 
 
 def test_nan_in_training_stops_with_iteration_and_group():
-    f = Frame(torch.tensor([[20.0, 0, 8], [0, 20, 8], [0, 0, 1]]),
-              torch.tensor(ring_w2c()[0], dtype=torch.float32), 16, 16, name="a.png",
-              image=torch.full((16, 16, 3), float("nan")))
+    f = Frame(
+        torch.tensor([[20.0, 0, 8], [0, 20, 8], [0, 0, 1]]),
+        torch.tensor(ring_w2c()[0], dtype=torch.float32),
+        16,
+        16,
+        name="a.png",
+        image=torch.full((16, 16, 3), float("nan")),
+    )
     sp = create_splats(torch.randn(50, 3) * 0.1, torch.rand(50, 3), torch.full((50,), 0.05), 0)
     cfg = TrainConfig(iterations=5, refine_start=100, floater_every=0, log_every=1)
     with pytest.raises(WgsError, match="non-finite at iteration 1"):
@@ -30,9 +34,14 @@ def test_nan_in_training_stops_with_iteration_and_group():
 def test_parameter_overflow_names_the_group_and_saves_nothing(tmp_path):
     """A mean that overflowed to inf after iteration 1 (planted through the shared storage that
     on_step sees): iteration 2 stops, naming the group, and no state is saved."""
-    f = Frame(torch.tensor([[20.0, 0, 8], [0, 20, 8], [0, 0, 1]]),
-              torch.tensor(ring_w2c()[0], dtype=torch.float32), 16, 16, name="a.png",
-              image=torch.rand(16, 16, 3))
+    f = Frame(
+        torch.tensor([[20.0, 0, 8], [0, 20, 8], [0, 0, 1]]),
+        torch.tensor(ring_w2c()[0], dtype=torch.float32),
+        16,
+        16,
+        name="a.png",
+        image=torch.rand(16, 16, 3),
+    )
     sp = create_splats(torch.randn(50, 3) * 0.1, torch.rand(50, 3), torch.full((50,), 0.05), 0)
     cfg = TrainConfig(iterations=5, refine_start=100, floater_every=0, log_every=1)
     ck = Checkpointer(tmp_path / "state.pt", every_s=1e9, resume=False)
@@ -42,8 +51,7 @@ def test_parameter_overflow_names_the_group_and_saves_nothing(tmp_path):
             params["means"][0, 0] = float("inf")
 
     with pytest.raises(WgsError, match=r"parameter group\(s\) means\b.* became non-finite at iteration 2"):
-        train_gaussians(sp, [f], cfg, torch.device("cpu"), extent=1.0, has_masks=False, checkpoint=ck,
-                        on_step=overflow)
+        train_gaussians(sp, [f], cfg, torch.device("cpu"), extent=1.0, has_masks=False, checkpoint=ck, on_step=overflow)
     assert not ck.path.exists()
 
 

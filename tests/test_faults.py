@@ -45,8 +45,11 @@ def assert_last_good_state(ws: Path, scene_manifest: str) -> None:
 @contextlib.contextmanager
 def tmpfs(path: Path, size: str, *options: str):
     path.mkdir(parents=True, exist_ok=True)
-    res = subprocess.run(["mount", "-t", "tmpfs", "-o", ",".join([f"size={size}", *options]), "tmpfs", str(path)],
-                         capture_output=True, text=True)
+    res = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", ",".join([f"size={size}", *options]), "tmpfs", str(path)],
+        capture_output=True,
+        text=True,
+    )
     if res.returncode != 0:
         pytest.skip(f"cannot mount a tmpfs here ({res.stderr.strip()}); the RLIMIT_FSIZE test covers a full disk")
     try:
@@ -72,9 +75,13 @@ def limit_file_size():
 
 def test_disk_full_as_a_file_size_limit(prepared, tmp_path):
     manifest = (prepared / "scene" / "manifest.json").read_text()
-    proc = subprocess.run([sys.executable, "-m", "wgs", "-q", "--config", str(tmp_path / "wgs.toml"), "-w",
-                           str(prepared), "coarse"], capture_output=True, text=True, preexec_fn=limit_file_size,
-                          timeout=180)
+    proc = subprocess.run(
+        [sys.executable, "-m", "wgs", "-q", "--config", str(tmp_path / "wgs.toml"), "-w", str(prepared), "coarse"],
+        capture_output=True,
+        text=True,
+        preexec_fn=limit_file_size,
+        timeout=180,
+    )
     assert proc.returncode == 1, proc.stderr
     assert "File too large" in one_error_line(proc)
     assert_last_good_state(prepared, manifest)
@@ -124,8 +131,11 @@ def test_read_only_workspace(prepared, tmp_path):
 def test_second_writer_is_refused_naming_the_holder(prepared, tmp_path):
     cfg = tmp_path / "wgs.toml"
     cfg.write_text(FAST.replace("200", "3000"))
-    first = subprocess.Popen([sys.executable, "-m", "wgs", "-q", "--config", str(cfg), "-w", str(prepared), "coarse"],
-                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    first = subprocess.Popen(
+        [sys.executable, "-m", "wgs", "-q", "--config", str(cfg), "-w", str(prepared), "coarse"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
     try:
         t0 = time.monotonic()
         while not (prepared / ".wgs.lock").exists():

@@ -27,8 +27,11 @@ from wgs.scene.splits import choose_split
 
 pytestmark = pytest.mark.slow  # `pytest -m 'not slow'` for a quick loop; make test runs all
 
-common = {"deadline": None, "suppress_health_check": [HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
-          "derandomize": True}
+common = {
+    "deadline": None,
+    "suppress_health_check": [HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+    "derandomize": True,
+}
 settings.register_profile("ci", max_examples=400, **common)
 settings.register_profile("stress", max_examples=5000, **common)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
@@ -51,18 +54,24 @@ def check(root: Path, views: int | None = 3) -> None:
 @pytest.fixture(scope="module")
 def bases(blender_scene, tmp_path_factory):
     base = tmp_path_factory.mktemp("fuzz")
-    return {"colmap": to_colmap(blender_scene, base / "colmap"), "ngp": to_ngp(blender_scene, base / "ngp"),
-            "idr": to_idr(blender_scene, base / "idr"), "blender": blender_scene}
+    return {
+        "colmap": to_colmap(blender_scene, base / "colmap"),
+        "ngp": to_ngp(blender_scene, base / "ngp"),
+        "idr": to_idr(blender_scene, base / "idr"),
+        "blender": blender_scene,
+    }
 
 
 @pytest.fixture
 def work(tmp_path):
     """A fresh scratch copy of a base scene for every example."""
+
     def copy(src: Path) -> Path:
         dst = tmp_path / "scene"
         shutil.rmtree(dst, ignore_errors=True)
         shutil.copytree(src, dst)
         return dst
+
     return copy
 
 
@@ -79,10 +88,14 @@ def mutated(draw, original: bytes) -> bytes:
         if op == "truncate":
             del data[i:]
         elif op == "delete":
-            del data[i:i + draw(st.integers(1, 64))]
+            del data[i : i + draw(st.integers(1, 64))]
         elif op == "insert":
-            data[i:i] = draw(st.binary(min_size=1, max_size=16) | st.sampled_from(
-                [b"nan", b"-inf", b"1e999", b" ", b"\n", b"\x00", b"..", b"/", b"-1", b"0", b"\xff\xfe"]))
+            data[i:i] = draw(
+                st.binary(min_size=1, max_size=16)
+                | st.sampled_from(
+                    [b"nan", b"-inf", b"1e999", b" ", b"\n", b"\x00", b"..", b"/", b"-1", b"0", b"\xff\xfe"]
+                )
+            )
         elif op == "flip":
             data[i] ^= 1 << draw(st.integers(0, 7))
         else:
@@ -104,9 +117,12 @@ def copy_and_pick(data, work, base: Path, rel: str) -> tuple[Path, Path, bytes, 
 
 # ----------------------------------------------------------------------------- COLMAP text models
 def colmap_token():
-    return st.one_of(st.integers(-3, 10).map(str), st.floats(allow_nan=True, allow_infinity=True).map(repr),
-                     st.sampled_from(["PINHOLE", "SIMPLE_RADIAL", "OPENCV", "FISHEYE", "UNKNOWN", "", "#"]),
-                     st.text(string.ascii_letters + "./_-", min_size=1, max_size=12))
+    return st.one_of(
+        st.integers(-3, 10).map(str),
+        st.floats(allow_nan=True, allow_infinity=True).map(repr),
+        st.sampled_from(["PINHOLE", "SIMPLE_RADIAL", "OPENCV", "FISHEYE", "UNKNOWN", "", "#"]),
+        st.text(string.ascii_letters + "./_-", min_size=1, max_size=12),
+    )
 
 
 @given(data=st.data())
@@ -127,12 +143,19 @@ def test_fuzz_colmap_text(bases, work, data):
 
 # ----------------------------------------------------------------------------- transforms.json
 def json_value(leaf):
-    return st.recursive(leaf, lambda c: st.lists(c, max_size=5) | st.dictionaries(st.text(max_size=8), c, max_size=5),
-                        max_leaves=20)
+    return st.recursive(
+        leaf, lambda c: st.lists(c, max_size=5) | st.dictionaries(st.text(max_size=8), c, max_size=5), max_leaves=20
+    )
 
 
-leaves = st.one_of(st.none(), st.booleans(), st.integers(-10**6, 10**6), st.floats(allow_nan=False),
-                   st.text(max_size=20), st.sampled_from(["..", "../x.png", "/etc/passwd", "images/r_0.png"]))
+leaves = st.one_of(
+    st.none(),
+    st.booleans(),
+    st.integers(-(10**6), 10**6),
+    st.floats(allow_nan=False),
+    st.text(max_size=20),
+    st.sampled_from(["..", "../x.png", "/etc/passwd", "images/r_0.png"]),
+)
 
 
 def matrix():
@@ -143,8 +166,13 @@ def matrix():
 @st.composite
 def ngp_meta(draw, valid: dict) -> dict:
     meta = json.loads(json.dumps(valid))
-    for key in draw(st.lists(st.sampled_from(["fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x",
-                                               "k1", "p1", "frames"]), max_size=4, unique=True)):
+    for key in draw(
+        st.lists(
+            st.sampled_from(["fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "k1", "p1", "frames"]),
+            max_size=4,
+            unique=True,
+        )
+    ):
         meta[key] = draw(json_value(leaves))
     frames = meta.get("frames")
     if isinstance(frames, list):
@@ -190,8 +218,18 @@ arrays = st.one_of(
     st.just(np.eye(4)),
     st.lists(st.floats(), min_size=16, max_size=16).map(lambda v: np.array(v).reshape(4, 4)),
     st.integers(0, 3).map(lambda n: np.zeros((n, 4))),
-    st.sampled_from([np.array("text"), np.zeros((4, 4), dtype=np.int8), np.full((4, 4), np.nan), np.ones((2, 2, 2)),
-                     np.array([1 + 2j] * 16).reshape(4, 4), np.zeros((4, 4)), np.array([object()], dtype=object)]))
+    st.sampled_from(
+        [
+            np.array("text"),
+            np.zeros((4, 4), dtype=np.int8),
+            np.full((4, 4), np.nan),
+            np.ones((2, 2, 2)),
+            np.array([1 + 2j] * 16).reshape(4, 4),
+            np.zeros((4, 4)),
+            np.array([object()], dtype=object),
+        ]
+    ),
+)
 
 
 @given(data=st.data())
@@ -224,9 +262,14 @@ def test_idr_npz_that_is_a_zip_of_junk(bases, work):
 
 
 # ----------------------------------------------------------------------------- split files
-@given(text=st.one_of(st.text(max_size=60), st.lists(st.integers(-5, 20), max_size=12).map(
-    lambda ids: " ".join(map(str, ids)))), raw=st.binary(max_size=40), use_raw=st.booleans(),
-    which=st.sampled_from(["sparse_3.txt", "sparse_test.txt"]))
+@given(
+    text=st.one_of(
+        st.text(max_size=60), st.lists(st.integers(-5, 20), max_size=12).map(lambda ids: " ".join(map(str, ids)))
+    ),
+    raw=st.binary(max_size=40),
+    use_raw=st.booleans(),
+    which=st.sampled_from(["sparse_3.txt", "sparse_test.txt"]),
+)
 def test_fuzz_split_files(bases, work, text, raw, use_raw, which):
     root = work(bases["blender"])
     path = root / which

@@ -23,10 +23,6 @@ def test_perfect_reconstruction(levels, size, dtype, tol):
     assert rel_err(idwt2(ll, highs, size=size), x) <= tol
 
 
-
-
-
-
 def test_orthonormal_energy_preserved():
     x = torch.randn(1, 2, 16, 16, dtype=torch.float64)
     ll, highs = dwt2(x, 2)

@@ -64,10 +64,13 @@ def test_the_early_iterations_see_the_views_at_half_size(sizes, until):
     K = torch.tensor([[20.0, 0, 8], [0, 20, 8], [0, 0, 1]])
     disc = ((torch.arange(16)[:, None] - 7.5) ** 2 + (torch.arange(16)[None] - 7.5) ** 2 < 30).float()
     cameras = [torch.tensor(m, dtype=torch.float32) for m in ring_w2c(radius=2.0)[:2]]
-    views = [Frame(K, w2c, 16, 16, name=f"{i}.png", image=torch.rand(16, 16, 3, generator=gen), mask=disc)
-             for i, w2c in enumerate(cameras)]
-    splats = create_splats(torch.randn(60, 3, generator=gen) * 0.2, torch.rand(60, 3, generator=gen),
-                           torch.full((60,), 0.05), 0)
+    views = [
+        Frame(K, w2c, 16, 16, name=f"{i}.png", image=torch.rand(16, 16, 3, generator=gen), mask=disc)
+        for i, w2c in enumerate(cameras)
+    ]
+    splats = create_splats(
+        torch.randn(60, 3, generator=gen) * 0.2, torch.rand(60, 3, generator=gen), torch.full((60,), 0.05), 0
+    )
     cfg = TrainConfig(iterations=10, refine_start=100, floater_every=0, log_every=1, half_size_until=until)
     res = trainer.train_gaussians(splats, views, cfg, torch.device("cpu"), extent=1.0, seed=0)
     assert all(torch.isfinite(torch.tensor(res.losses)))
@@ -87,13 +90,20 @@ def test_pseudo_views_follow_the_same_schedule(sizes):
     K = torch.tensor([[20.0, 0, 8], [0, 20, 8], [0, 0, 1]])
     w2c = [torch.tensor(m, dtype=torch.float32) for m in ring_w2c(radius=2.0)[:2]]
     photo = Frame(K, w2c[0], 16, 16, name="a.png", image=torch.rand(16, 16, 3, generator=gen))
-    pseudo = trainer.PseudoViews([Frame(K, w2c[1], 16, 16, name="p.png", image=torch.rand(16, 16, 3, generator=gen))],
-                                 [1.0], lambda it: 1.0, torch.ones(3), every=1)
-    splats = create_splats(torch.randn(60, 3, generator=gen) * 0.2, torch.rand(60, 3, generator=gen),
-                           torch.full((60,), 0.05), 0)
+    pseudo = trainer.PseudoViews(
+        [Frame(K, w2c[1], 16, 16, name="p.png", image=torch.rand(16, 16, 3, generator=gen))],
+        [1.0],
+        lambda it: 1.0,
+        torch.ones(3),
+        every=1,
+    )
+    splats = create_splats(
+        torch.randn(60, 3, generator=gen) * 0.2, torch.rand(60, 3, generator=gen), torch.full((60,), 0.05), 0
+    )
     cfg = TrainConfig(iterations=6, refine_start=100, floater_every=0, log_every=1, half_size_until=0.5)
-    trainer.train_gaussians(splats, [photo], cfg, torch.device("cpu"), extent=1.0, seed=0, has_masks=False,
-                            pseudo=pseudo)
+    trainer.train_gaussians(
+        splats, [photo], cfg, torch.device("cpu"), extent=1.0, seed=0, has_masks=False, pseudo=pseudo
+    )
     # each iteration renders its photo, then its pseudo view
     assert sizes == [(8, 8)] * 6 + [(16, 16)] * 6
 

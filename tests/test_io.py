@@ -33,14 +33,21 @@ def test_ply_shape_must_match_names(tmp_path):
     assert not (tmp_path / "b.ply").exists()
 
 
-@pytest.mark.parametrize("body, needle", [
-    (b"solid cube\n", "not a PLY file"),
-    (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n1.0\n", "binary little-endian"),
-    (b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty uchar x\nend_header\n\x01",
-     "float properties"),
-    (b"ply\nformat binary_little_endian 1.0\nelement vertex 2\nproperty float x\nend_header\n\0\0\0\0",
-     "truncated"),
-])
+@pytest.mark.parametrize(
+    "body, needle",
+    [
+        (b"solid cube\n", "not a PLY file"),
+        (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n1.0\n", "binary little-endian"),
+        (
+            b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty uchar x\nend_header\n\x01",
+            "float properties",
+        ),
+        (
+            b"ply\nformat binary_little_endian 1.0\nelement vertex 2\nproperty float x\nend_header\n\0\0\0\0",
+            "truncated",
+        ),
+    ],
+)
 def test_bad_ply_names_the_file(tmp_path, body, needle):
     p = tmp_path / "bad.ply"
     p.write_bytes(body)

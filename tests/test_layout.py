@@ -19,14 +19,6 @@ def imported_modules(path: Path) -> set[str]:
     return out
 
 
-def test_no_stage_imports_another_stage():
-    stage_modules = {p.stem for p in STAGES.glob("*.py")} - {"__init__", "shared"}
-    assert {"s1_coarse", "s6_eval", "render_views"} <= stage_modules
-    for p in STAGES.glob("*.py"):
-        siblings = imported_modules(p) & stage_modules - {p.stem}
-        assert not siblings, f"{p.name} imports {sorted(siblings)}: move what they share to stages/shared.py"
-
-
 WGS = STAGES.parent
 
 
@@ -56,12 +48,50 @@ def import_graph() -> dict[str, set[str]]:
     return {m: imports_of(p, set(files)) for m, p in files.items()}
 
 
+def test_no_stage_imports_another_stage():
+    graph = import_graph()
+    stage_of = {m: m.split(".")[2] for m in graph if m.startswith("wgs.stages.") and m.count(".") >= 2}
+    stages = set(stage_of.values()) - {"shared"}
+    assert {"s1_coarse", "s6_eval", "render_views"} <= stages
+    for m, stage in stage_of.items():
+        others = {stage_of[d] for d in graph[m] if d in stage_of} & stages - {stage}
+        assert not others, f"{m} imports {sorted(others)}: move what they share to stages/shared.py"
+
+
 def test_lower_layers_know_no_workspace():
     graph = import_graph()
     lower = [m for m in graph if m.split(".")[1:2] in (["scene"], ["gaussians"], ["wavelet"], ["models"], ["io"])]
     assert len(lower) > 20
     for m in lower:
         assert "wgs.workspace" not in graph[m], f"{m} imports wgs.workspace: take paths, use wgs.io"
+
+
+# the layers, lowest first: a module may import its own layer and the ones below it, never above
+LAYERS = (
+    ("errors", "fields", "io", "progress", "threads", "device", "masking", "metrics", "lpips", "resume"),  # utilities
+    ("scene", "gaussians", "shape", "segment", "models", "wavelet", "weights"),  # the library: plain values in
+    ("config",),  # the stages' settings, built from the library's parameter dataclasses
+)
+
+
+def layer_of(module: str) -> int | None:
+    top = module.split(".")[1] if "." in module else module
+    return next((i for i, names in enumerate(LAYERS) if top in names), None)
+
+
+def test_imports_point_down():
+    """The utilities, the library (scene, gaussians, shape, segment, models, ...) and config import
+    nothing above them: no config below config, no stage, prior, training, workspace or command."""
+    graph = import_graph()
+    checked = 0
+    for m, deps in graph.items():
+        mine = layer_of(m)
+        if mine is None:
+            continue
+        checked += 1
+        above = sorted(d for d in deps if layer_of(d) is None or layer_of(d) > mine)
+        assert not above, f"{m} imports {above}, above its layer"
+    assert checked > 60 and layer_of("wgs.scene.prepare") == 1 and layer_of("wgs.config") == 2
 
 
 def test_every_registry_stage_runs_through_one_signature():
@@ -83,22 +113,26 @@ def test_orchestration_spells_no_stage_order():
 
 
 def test_training_sits_between_the_networks_and_their_callers():
-    # models (networks, sampling, the repair) < training (the loop, objectives) < stages and prior
+    # models (networks, sampling, the repair) < training (the loop, objectives, the per-object
+    # fine-tune) < stages and prior; the loop itself takes its checkpoint as a protocol (saved state and
+    # interrupts, `wgs.resume`, are a utility the per-object trainers wire in)
     graph = import_graph()
     for m, deps in graph.items():
         if m.startswith("wgs.models"):
             assert not {d for d in deps if d.startswith("wgs.training")}, f"{m} imports the training layer"
         if m.startswith("wgs.training"):
-            upper = {d for d in deps if d.split(".")[1] in ("stages", "prior", "workspace", "resume", "pipeline")}
+            upper = {d for d in deps if d.split(".")[1] in ("stages", "prior", "workspace", "pipeline")}
             assert not upper, f"{m} imports {sorted(upper)}"
-    assert {"wgs.training.loop"} <= graph["wgs.stages.s3_finetune"] | graph["wgs.training.denoiser"]
+    assert "wgs.resume" not in graph["wgs.training.loop"]
+    assert "wgs.training.per_object" in graph["wgs.stages.s3_finetune"]
+    assert "wgs.training.loop" in graph["wgs.training.denoiser"]
     assert "wgs.training.denoiser" in graph["wgs.prior.train"]
 
 
 def test_orchestration_and_stages_know_no_click():
-    # the CLI is click only: orchestration takes wgs.context.Ctx, a plain object
+    # the CLI is click only: orchestration takes wgs.context.RunOptions, a plain object
     for rel in ("pipeline.py", "ablation.py", "context.py", "stages"):
-        for p in [WGS / rel] if rel.endswith(".py") else sorted((WGS / rel).glob("*.py")):
+        for p in [WGS / rel] if rel.endswith(".py") else sorted((WGS / rel).rglob("*.py")):
             tops = set()
             for node in ast.walk(ast.parse(p.read_text())):
                 if isinstance(node, ast.Import):
@@ -123,7 +157,7 @@ def test_no_import_cycle():
     def visit(m: str, path: list[str]) -> None:
         state[m] = "open"
         for d in sorted(graph[m]):
-            assert state.get(d) != "open", "import cycle: " + " -> ".join(path[path.index(d):] + [d])
+            assert state.get(d) != "open", "import cycle: " + " -> ".join(path[path.index(d) :] + [d])
             if d not in state:
                 visit(d, path + [d])
         state[m] = "done"
@@ -151,14 +185,19 @@ def test_the_stages_are_listed_once():
 
 
 def test_cli_options_are_the_config_fields():
-    """Every stage command's option that sets a config field (and `wgs all`'s) takes the field's
-    choices and range, leaves the default to the config (None) and states the config's default."""
+    """Every option of a stage command (and of `wgs all`) is a config field's: its help is the
+    field's meaning, its choices and range are the field's (`fields.option`), it leaves the default
+    to the config (None) and states the config's default; no such command has an option that no
+    field declares, other than the shared ones."""
     import re
 
     import click
 
     from wgs.cli import cli
     from wgs.config import CHOICES, RANGES, REGISTRY, STAGES
+    from wgs.fields import facts
+
+    shared = {"force", "preset", "ws_override", "scene", "budget", "force_repair", "baseline", "help"}
 
     checked = set()
     for name in [s.command for s in REGISTRY] + ["all"]:
@@ -167,8 +206,13 @@ def test_cli_options_are_the_config_fields():
         for param in command.params:
             owners = [c for c in classes if param.name in c.__dataclass_fields__]
             if not owners:
+                assert param.name in shared, f"wgs {name} --{param.name} is no config field's"
                 continue
             default = getattr(owners[0], param.name)
+            meaning = facts(owners[0], param.name).get("help")
+            assert meaning and (param.help or "").startswith(meaning), (name, param.name, param.help)
+            assert CHOICES.get(param.name) == facts(owners[0], param.name).get("choices"), (name, param.name)
+            assert RANGES.get(param.name) == facts(owners[0], param.name).get("range"), (name, param.name)
             assert param.default is None, (name, param.name)
             if param.name in CHOICES:
                 assert tuple(param.type.choices) == CHOICES[param.name], (name, param.name)
@@ -192,8 +236,12 @@ def test_a_config_range_is_enforced_for_every_command():
     from wgs.config import resolve
     from wgs.errors import InputError
 
-    for table, key, bad in (("coarse", "sh_degree", 4), ("fine", "sh_degree", -1), ("prepare", "views", 1),
-                            ("prepare", "downscale", 0)):
+    for table, key, bad in (
+        ("coarse", "sh_degree", 4),
+        ("fine", "sh_degree", -1),
+        ("prepare", "views", 1),
+        ("prepare", "downscale", 0),
+    ):
         with pytest.raises(InputError, match=key):
             resolve(table, file_cfg={table: {key: bad}})
 
@@ -208,3 +256,37 @@ def test_readers_find_outputs_through_the_registry():
         if p.name != "workspace.py":
             hits = joined.findall(p.read_text())
             assert not hits, f"{p.relative_to(WGS.parent)} spells a stage's path: {hits}"
+
+
+def test_every_option_of_every_command_is_a_fields_option():
+    """No hand-written option: every option of the group and of every command (tools included)
+    takes its help, and its choices or range, from a settings dataclass's field (`fields.option`)."""
+    import dataclasses
+    import inspect
+    import sys
+
+    import click
+
+    from wgs.cli import cli
+    from wgs.config import RUN_TABLES, STAGES
+    from wgs.fields import facts
+
+    settings = list(STAGES.values()) + list(RUN_TABLES.values())
+    for name, module in list(sys.modules.items()):
+        if name.startswith("wgs.cli."):
+            settings += [c for _, c in inspect.getmembers(module, dataclasses.is_dataclass) if isinstance(c, type)]
+    commands = [("wgs", cli)] + [(f"wgs {n}", c) for n, c in cli.commands.items()]
+    seen = 0
+    for where, command in commands:
+        for param in command.params:
+            if not isinstance(param, click.Option) or param.name in ("help", "version"):
+                continue
+            name = "workspace" if param.name == "ws_override" else param.name  # -w after the command
+            owners = [c for c in settings if name in {f.name for f in dataclasses.fields(c)}]
+            meanings = [facts(c, name).get("help") for c in owners]
+            assert any(m and (param.help or "").startswith(m) for m in meanings), f"{where} --{name}: {param.help!r}"
+            for c in owners:
+                if facts(c, name).get("choices") is not None and isinstance(param.type, click.Choice):
+                    assert tuple(param.type.choices) == facts(c, name)["choices"], (where, name)
+            seen += 1
+    assert seen > 100 and len(commands) >= 16

@@ -9,9 +9,9 @@ from click.testing import CliRunner
 from wgs.cli import cli
 from wgs.io.exr import read_subbands
 from wgs.models.storage import load_model
-from wgs.prior import WEIGHTS as PRIOR_WEIGHTS
 from wgs.scene.dataset import load_prepared
 from wgs.stages.shared import subband_file
+from wgs.weights import WEIGHTS as PRIOR_WEIGHTS
 from wgs.workspace import Workspace
 
 TRAIN = ["--preset", "fast", "--iterations", "40"]
@@ -36,8 +36,6 @@ def copy_ws(ws, dst):
 
     shutil.copytree(ws.root, dst)
     return Workspace(dst)
-
-
 
 
 def mask_data(ws, tmp_path, *extra):
@@ -78,8 +76,19 @@ def test_finetune_trains_and_saves_d_and_u(coarse_ws, tmp_path):
     cfg = tmp_path / "finetune.toml"
     # a short fine-tune of the prior, evaluated three times
     cfg.write_text("[finetune]\nprior_steps = 12\nprior_eval_every = 4\n")
-    invoke("--config", str(cfg), "-w", str(ws.root), "finetune", "--preset", "fast", "--d-steps", "30",
-           "--u-max-steps", "30")
+    invoke(
+        "--config",
+        str(cfg),
+        "-w",
+        str(ws.root),
+        "finetune",
+        "--preset",
+        "fast",
+        "--d-steps",
+        "30",
+        "--u-max-steps",
+        "30",
+    )
     d = ws.stage_dir("finetune")
     D, cfg = load_model(d / "D")
     assert cfg["domain"] == "wavelet"
@@ -104,8 +113,9 @@ def test_finetune_trains_and_saves_d_and_u(coarse_ws, tmp_path):
     assert curves["D"]["step"] == [] and curves["D"]["stopped_at"] == 0 and curves["D"]["bar"] > 0
     assert ws.manifest("finetune")["d_stopped_at"] == 0 and (d / "curves.png").stat().st_size > 1000
     # --prior none: the from-scratch denoising D (SDEdit at repair time), its own width
-    invoke("-w", str(ws.root), "finetune", "--preset", "fast", "--d-steps", "10", "--u-max-steps", "10",
-           "--prior", "none")
+    invoke(
+        "-w", str(ws.root), "finetune", "--preset", "fast", "--d-steps", "10", "--u-max-steps", "10", "--prior", "none"
+    )
     cfg = load_model(d / "D")[1]
     assert cfg["start"] == "clean" and cfg["channels"] == 16 and ws.manifest("finetune")["prior"] is None
     # RGB-domain D for the ablation: no U

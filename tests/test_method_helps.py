@@ -46,7 +46,10 @@ def test_a_repair_that_does_not_repair_loses_the_gain(finished_workspace, tmp_pa
     # without carving or the hull shaped by the masks, which gain on their own (see above)
     for stage in ("repair", "fine", "eval"):
         extra = ["--no-carve", "--no-shape-revolution", "--no-shape-smooth"] if stage == "repair" else []
-        res = CliRunner().invoke(cli, ["-q", "--config", str(base / "wgs.toml"), "-w", str(ws), stage, "--force",
-                                       *extra], catch_exceptions=False)
+        res = CliRunner().invoke(
+            cli,
+            ["-q", "--config", str(base / "wgs.toml"), "-w", str(ws), stage, "--force", *extra],
+            catch_exceptions=False,
+        )
         assert res.exit_code == 0, res.output
     assert fine_over_coarse(ws) < MARGIN_DB

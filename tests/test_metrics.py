@@ -1,6 +1,5 @@
 """Metrics: 3DGS-style SSIM against a float64 reference, PSNR edge cases, LPIPS from local weights."""
 
-
 import numpy as np
 import pytest
 import torch
@@ -22,7 +21,7 @@ def ssim_reference(a: np.ndarray, b: np.ndarray) -> float:
     for ch in range(c):
         for i in range(h):
             for j in range(wd):
-                wa, wb = pa[i:i + 11, j:j + 11, ch], pb[i:i + 11, j:j + 11, ch]
+                wa, wb = pa[i : i + 11, j : j + 11, ch], pb[i : i + 11, j : j + 11, ch]
                 ma, mb = (w * wa).sum(), (w * wb).sum()
                 va, vb = (w * wa * wa).sum() - ma**2, (w * wb * wb).sum() - mb**2
                 cov = (w * wa * wb).sum() - ma * mb
@@ -45,8 +44,9 @@ def test_ssim_map_reflect_is_kornias_training_loss_map():
     y = (x + 0.2 * torch.randn(x.shape, generator=g, dtype=torch.float64)).clamp(0, 1)
     ours = ssim_map(x, y, padding="reflect", eps=1e-12)
     torch.testing.assert_close(ours, kornia.metrics.ssim(x, y, 11), rtol=1e-12, atol=1e-12)
-    torch.testing.assert_close(ssim_map(x.float(), y.float(), padding="reflect", eps=1e-12), ours.float(),
-                               rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(
+        ssim_map(x.float(), y.float(), padding="reflect", eps=1e-12), ours.float(), rtol=1e-5, atol=1e-5
+    )
 
 
 @pytest.mark.parametrize("padding", ["zeros", "reflect"])
@@ -80,8 +80,6 @@ def test_ssim_map_refuses_bad_input():
             fn(x, x, padding="circular")
         with pytest.raises(ValueError, match="one shape"):
             fn(x, x[..., :8])
-
-
 
 
 def write_random_lpips(folder, net="alex", seed=0):

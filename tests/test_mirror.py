@@ -19,7 +19,7 @@ def duck(p: torch.Tensor) -> torch.Tensor:
     """Mirror-symmetric across y = 0 only: an ellipsoid body, a head up front at +x, a tail up at -x."""
     x, y, z = p[:, 0], p[:, 1], p[:, 2]
     body = (x / 0.4) ** 2 + (y / 0.22) ** 2 + (z / 0.18) ** 2 < 1
-    head = (x - 0.32) ** 2 + y ** 2 + (z - 0.25) ** 2 < 0.12 ** 2
+    head = (x - 0.32) ** 2 + y**2 + (z - 0.25) ** 2 < 0.12**2
     tail = (x > -0.5) & (x < -0.3) & (y.abs() < 0.05) & (z > 0.0) & (z < 0.22)
     return body | head | tail
 
@@ -38,12 +38,12 @@ def test_reflect_is_an_involution_that_keeps_the_plane():
     once = reflect(points, normals, offsets)
     assert once.shape == (4, 50, 3)
     for b in range(4):
-        twice = reflect(once[b], normals[b:b + 1], offsets[b:b + 1])[0]
+        twice = reflect(once[b], normals[b : b + 1], offsets[b : b + 1])[0]
         assert torch.allclose(twice, points, atol=1e-12)
         side = points @ normals[b] - offsets[b]
         assert torch.allclose(once[b] @ normals[b] - offsets[b], -side, atol=1e-12)  # the other side, as far
         on_plane = points - side[:, None] * normals[b]
-        assert torch.allclose(reflect(on_plane, normals[b:b + 1], offsets[b:b + 1])[0], on_plane, atol=1e-12)
+        assert torch.allclose(reflect(on_plane, normals[b : b + 1], offsets[b : b + 1])[0], on_plane, atol=1e-12)
 
 
 def test_hemisphere_directions_are_unit_and_spread():
@@ -78,8 +78,9 @@ def test_the_mirror_of_a_symmetric_object_is_found_and_its_views_carve_toward_th
     assert angle < 3 and abs(plane.offset) < 0.02, (record, angle)
     assert record["used"] and record["leave_one_out_iou_mirrored"] > record["leave_one_out_iou"] + 0.05
     grid = visual_hull_grid(duck_views, resolution=64, extent=0.7, tolerate=0)
-    both = visual_hull_grid(duck_views + [mirror_frame(f, plane) for f in duck_views], resolution=64,
-                               extent=0.7, tolerate=0)
+    both = visual_hull_grid(
+        duck_views + [mirror_frame(f, plane) for f in duck_views], resolution=64, extent=0.7, tolerate=0
+    )
     unseen = [camera(a, e) for a, e in ((150, -60), (330, -40), (60, 80), (240, 5))]
     iou = lambda g: sum(silhouette_scores(silhouette(g, c)[0], true_mask(duck, c))["iou"] for c in unseen) / 4  # noqa: E731
     assert iou(both) > iou(grid) + 0.02, (iou(grid), iou(both))
@@ -120,8 +121,9 @@ def test_no_mirror_without_the_gain(duck_views):
 def test_no_mirror_where_its_views_would_cut_the_photos_masks(duck_views):
     """A duck with one wing is no longer symmetric: the best plane's mirror images would cut the
     wing (or its like) out of the photos' masks, so the check fails on what it misses."""
+
     def crooked(p):
-        return duck(p) | ((p[:, 0] + 0.05) ** 2 + (p[:, 1] - 0.3) ** 2 + (p[:, 2] - 0.1) ** 2 < 0.13 ** 2)
+        return duck(p) | ((p[:, 0] + 0.05) ** 2 + (p[:, 1] - 0.3) ** 2 + (p[:, 2] - 0.1) ** 2 < 0.13**2)
 
     views = frames_of(crooked, [camera(a, e) for a, e in ((20, 20), (105, 35), (200, 15), (290, 30))])
     record = mirror_check(views, min_gain=0.0, max_missed=0.02, directions=60)
@@ -159,8 +161,16 @@ def test_an_outline_view_teaches_its_mask_and_not_its_image():
         assert torch.allclose(base[k], other_image[k], atol=1e-6), k
     assert max(float((base[k] - other_mask[k]).abs().max()) for k in base if base[k].numel()) > 1e-3
 
-    outline = Frame(K, w2c[1], 16, 16, name="b.mirror.png", image=torch.zeros(16, 16, 3), mask=torch.ones(16, 16),
-                    shows_colour=False)
+    outline = Frame(
+        K,
+        w2c[1],
+        16,
+        16,
+        name="b.mirror.png",
+        image=torch.zeros(16, 16, 3),
+        mask=torch.ones(16, 16),
+        shows_colour=False,
+    )
     splats = create_splats(points, colours, torch.full((60,), 0.05), 0)
     res = train_gaussians(splats, [outline], cfg, torch.device("cpu"), extent=1.0, seed=0)
     assert res.losses == [0.0] * cfg.iterations

@@ -12,7 +12,7 @@ from wgs.models.ll_denoiser import LLDenoiser, LLDenoiserConfig
 from wgs.models.sampling import sdedit_repair
 from wgs.models.scheduler import DDIMScheduler
 from wgs.models.storage import load_model, save_model
-from wgs.stages.s3_finetune import train_hf_unet, train_scratch_d
+from wgs.training.per_object import train_hf_unet, train_scratch_d
 from wgs.wavelet.haar import dwt2, idwt2
 
 
@@ -22,12 +22,9 @@ def test_add_noise_and_velocity_closed_form():
     ab = float(s.alphas_cumprod[3])
     x0, n = torch.tensor([[0.5]]), torch.tensor([[-2.0]])
     torch.testing.assert_close(s.add_noise(x0, n, t), torch.tensor([[math.sqrt(ab) * 0.5 - math.sqrt(1 - ab) * 2.0]]))
-    torch.testing.assert_close(s.get_velocity(x0, n, t),
-                               torch.tensor([[math.sqrt(ab) * -2.0 - math.sqrt(1 - ab) * 0.5]]))
-
-
-
-
+    torch.testing.assert_close(
+        s.get_velocity(x0, n, t), torch.tensor([[math.sqrt(ab) * -2.0 - math.sqrt(1 - ab) * 0.5]])
+    )
 
 
 def test_untrained_denoiser_is_the_identity_repair():
@@ -79,8 +76,7 @@ def test_u_early_stopping_stops_when_validation_rises():
     refs = torch.rand(3, 3, 32, 32, generator=g)
     renders = refs.clone()
     renders[:2] += 0.2 * torch.randn(2, 3, 32, 32, generator=g)
-    cfg = FinetuneConfig(u_channels=8, u_max_steps=2000, u_batch=4, u_crop=8, u_lr=5e-3, u_eval_every=10,
-                         u_patience=3)
+    cfg = FinetuneConfig(u_channels=8, u_max_steps=2000, u_batch=4, u_crop=8, u_lr=5e-3, u_eval_every=10, u_patience=3)
     _, curve = train_hf_unet(cfg, renders, refs, torch.device("cpu"), g)
     assert curve["stopped_at"] < 2000
     vals = [curve["bar"], *curve["val"]]  # the better of no repair and the untrained U is the first candidate
@@ -96,7 +92,6 @@ def test_u_that_learns_a_consistent_correction_beats_identity():
     renders = torch.rand(4, 3, 32, 32, generator=g) * 2 - 1
     ll, [h] = dwt2(renders, 1)
     refs = idwt2(ll, [tuple(0.5 * b for b in h)])
-    cfg = FinetuneConfig(u_channels=8, u_max_steps=300, u_batch=4, u_crop=8, u_lr=5e-3, u_eval_every=20,
-                         u_patience=3)
+    cfg = FinetuneConfig(u_channels=8, u_max_steps=300, u_batch=4, u_crop=8, u_lr=5e-3, u_eval_every=20, u_patience=3)
     _, curve = train_hf_unet(cfg, renders, refs, torch.device("cpu"), g)
     assert curve["beats_identity"] and curve["best"] < 0.8 * curve["identity"]

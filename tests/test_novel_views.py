@@ -17,8 +17,15 @@ def ring(n=4, radius=1.0, height=0.3):
     for i in range(n):
         a = 2 * math.pi * i / n + 0.1 * i
         eye = np.array([radius * math.cos(a), radius * math.sin(a), height])
-        out.append(Frame(K, torch.tensor(look_at(eye, eye * 0, np.array([0, 0, 1.0])), dtype=torch.float32), 64, 64,
-                         name=f"t{i}.png"))
+        out.append(
+            Frame(
+                K,
+                torch.tensor(look_at(eye, eye * 0, np.array([0, 0, 1.0])), dtype=torch.float32),
+                64,
+                64,
+                name=f"t{i}.png",
+            )
+        )
     return out
 
 
@@ -78,7 +85,6 @@ def test_novel_views_do_not_depend_on_test_cameras(tmp_path):
     from wgs.cli import cli
     from wgs.scene.dataset import load_prepared
     from wgs.workspace import Workspace
-
 
     a = make_scene(tmp_path / "a", seed=4, size=32, n_train=4, n_test=3)
     b = tmp_path / "b"

@@ -29,12 +29,16 @@ def close_up(seed: int, n_around: int = 0):
     in the normalised world of its training cameras."""
     rng = np.random.default_rng(seed)
     parts = make_scene.make_object(rng)
-    eyes = {"train": make_scene.camera_positions(4, rng, True, close_up=True),
-            "test": make_scene.camera_positions(6, rng, False, close_up=True)}
+    eyes = {
+        "train": make_scene.camera_positions(4, rng, True, close_up=True),
+        "test": make_scene.camera_positions(6, rng, False, close_up=True),
+    }
     golden = math.pi * (3 - math.sqrt(5))
-    eyes["around"] = [make_scene.STAND_BACK_DISTANCE * np.array(
-        [math.sqrt(1 - z * z) * math.cos(i * golden), math.sqrt(1 - z * z) * math.sin(i * golden), z])
-        for i, z in enumerate(1 - 2 * (np.arange(n_around) + 0.5) / max(n_around, 1))]
+    eyes["around"] = [
+        make_scene.STAND_BACK_DISTANCE
+        * np.array([math.sqrt(1 - z * z) * math.cos(i * golden), math.sqrt(1 - z * z) * math.sin(i * golden), z])
+        for i, z in enumerate(1 - 2 * (np.arange(n_around) + 0.5) / max(n_around, 1))
+    ]
     out = generated_frames(parts, eyes, SIZE)
     return out["train"], out["test"], out["around"]
 
@@ -67,8 +71,10 @@ def test_the_hull_stays_bounded_and_does_not_cut_what_the_photos_crop(capture):
     reference = volume(hull.visual_hull_grid(around, 64, tolerate=0))
     grids = {rule: hull.visual_hull_grid(train, 64, tolerate=0, off_frame=rule) for rule in hull.OFF_FRAME}
     ratio = {rule: volume(g) / reference for rule, g in grids.items()}
-    missed = {rule: mean_scores({f.name: silhouette_scores(hull.silhouette(g, f)[0], f.mask > 0.5) for f in test}
-                                )["missed"] for rule, g in grids.items()}
+    missed = {
+        rule: mean_scores({f.name: silhouette_scores(hull.silhouette(g, f)[0], f.mask > 0.5) for f in test})["missed"]
+        for rule, g in grids.items()
+    }
     assert 1.0 <= ratio["abstain"] < 2.0, ratio
     assert ratio["object"] > ratio["abstain"], ratio
     assert missed["abstain"] < missed["background"], missed
@@ -87,8 +93,19 @@ def test_a_close_up_trains_g_c_no_worse_than_a_hull_that_cuts():
         torch.manual_seed(0)
         splats = train_gaussians(init, train, cfg, torch.device("cpu"), extent=1.0, seed=0).splats
         bg = torch.ones(3)
-        scores[rule] = float(np.mean([float(psnr(render_frame(splats, f, torch.device("cpu"), bg)[0].clamp(0, 1),
-                                                 composite(f.image, f.mask, bg))) for f in test]))
+        scores[rule] = float(
+            np.mean(
+                [
+                    float(
+                        psnr(
+                            render_frame(splats, f, torch.device("cpu"), bg)[0].clamp(0, 1),
+                            composite(f.image, f.mask, bg),
+                        )
+                    )
+                    for f in test
+                ]
+            )
+        )
     assert scores["abstain"] >= scores["background"] - 0.05, scores
 
 

@@ -27,10 +27,14 @@ def capture(kind: str, seed: int = 5):
     views spread over the whole sphere."""
     rng = np.random.default_rng(seed)
     obj = make_scene.make_shape(kind, rng)
-    above = [make_scene.RADIUS * np.array([0.17 * math.cos(a), 0.17 * math.sin(a), 0.985])
-             for a in (0.4, 2.0, 3.6, 5.2)]
-    eyes = {"train": make_scene.camera_positions(4, rng, True), "above": above,
-            "sphere": make_scene.sphere_positions(12)}
+    above = [
+        make_scene.RADIUS * np.array([0.17 * math.cos(a), 0.17 * math.sin(a), 0.985]) for a in (0.4, 2.0, 3.6, 5.2)
+    ]
+    eyes = {
+        "train": make_scene.camera_positions(4, rng, True),
+        "above": above,
+        "sphere": make_scene.sphere_positions(12),
+    }
     return generated_frames(obj, eyes, SIZE)
 
 
@@ -59,8 +63,11 @@ def test_a_box_keeps_its_corners():
     assert not record["revolution"]["used"]
     assert iou_at(shape, views["sphere"]) >= iou_at(hull, views["sphere"]) - 0.005
     # the corners the photos show are still there: nothing of the true silhouettes is lost from above
-    lost = [silhouette_scores(silhouette(shape, f)[0], f.mask > 0.5)["missed"]
-            - silhouette_scores(silhouette(hull, f)[0], f.mask > 0.5)["missed"] for f in views["above"]]
+    lost = [
+        silhouette_scores(silhouette(shape, f)[0], f.mask > 0.5)["missed"]
+        - silhouette_scores(silhouette(hull, f)[0], f.mask > 0.5)["missed"]
+        for f in views["above"]
+    ]
     assert max(lost) < 0.01
 
 
@@ -109,7 +116,7 @@ def test_a_ball_is_its_own_revolution_and_opening():
     r = 24
     c = (torch.arange(r) + 0.5) / r * 2 - 1
     x, y, z = torch.meshgrid(c, c, c, indexing="ij")
-    ball = HullGrid(torch.full((3,), -1.0), torch.full((3,), 1.0), x * x + y * y + z * z < 0.8 ** 2)
+    ball = HullGrid(torch.full((3,), -1.0), torch.full((3,), 1.0), x * x + y * y + z * z < 0.8**2)
     spun = revolved(ball, torch.zeros(3), torch.tensor([0.3, 0.2, 0.9]))
     assert float(spun.occ.sum()) / float(ball.occ.sum()) > 0.97
     kept = opening(ball, 0.3).occ  # a ball is open at any smaller radius, up to the grid's steps

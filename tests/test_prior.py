@@ -20,13 +20,30 @@ QUAD_V = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float32)
 QUAD_F = np.array([[0, 1, 2], [0, 2, 3]], np.uint32)
 
 
-def _gltf(tmp_path, prim: dict, buffers: list[bytes], views: list[dict], accessors: list[dict], node: dict,
-          materials=None, name="m.gltf"):
-    doc = {"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}], "nodes": [{**node, "mesh": 0}],
-           "meshes": [{"primitives": [prim]}], "accessors": accessors, "bufferViews": views,
-           "buffers": [{"byteLength": len(b), "uri": "data:application/octet-stream;base64,"
-                        + base64.b64encode(b).decode()} for b in buffers],
-           "materials": materials or [{"pbrMetallicRoughness": {"baseColorFactor": [0.2, 0.4, 0.6, 1]}}]}
+def _gltf(
+    tmp_path,
+    prim: dict,
+    buffers: list[bytes],
+    views: list[dict],
+    accessors: list[dict],
+    node: dict,
+    materials=None,
+    name="m.gltf",
+):
+    doc = {
+        "asset": {"version": "2.0"},
+        "scene": 0,
+        "scenes": [{"nodes": [0]}],
+        "nodes": [{**node, "mesh": 0}],
+        "meshes": [{"primitives": [prim]}],
+        "accessors": accessors,
+        "bufferViews": views,
+        "buffers": [
+            {"byteLength": len(b), "uri": "data:application/octet-stream;base64," + base64.b64encode(b).decode()}
+            for b in buffers
+        ],
+        "materials": materials or [{"pbrMetallicRoughness": {"baseColorFactor": [0.2, 0.4, 0.6, 1]}}],
+    }
     path = tmp_path / name
     path.write_text(json.dumps(doc))
     return path, doc
@@ -35,10 +52,18 @@ def _gltf(tmp_path, prim: dict, buffers: list[bytes], views: list[dict], accesso
 def test_gltf_plain_accessors_and_node_transform(tmp_path):
     data = QUAD_V.tobytes() + QUAD_F.astype(np.uint16).tobytes()
     views = [{"buffer": 0, "byteOffset": 0, "byteLength": 48}, {"buffer": 0, "byteOffset": 48, "byteLength": 12}]
-    acc = [{"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3"},
-           {"bufferView": 1, "componentType": 5123, "count": 6, "type": "SCALAR"}]
-    path, doc = _gltf(tmp_path, {"attributes": {"POSITION": 0}, "indices": 1, "material": 0}, [data], views, acc,
-                      {"translation": [0, 0, 2], "scale": [2, 2, 2]})
+    acc = [
+        {"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3"},
+        {"bufferView": 1, "componentType": 5123, "count": 6, "type": "SCALAR"},
+    ]
+    path, doc = _gltf(
+        tmp_path,
+        {"attributes": {"POSITION": 0}, "indices": 1, "material": 0},
+        [data],
+        views,
+        acc,
+        {"translation": [0, 0, 2], "scale": [2, 2, 2]},
+    )
     m = load_gltf(path)
     np.testing.assert_allclose(m.vertices, QUAD_V * 2 + [0, 0, 2])
     np.testing.assert_array_equal(m.faces, QUAD_F)
@@ -48,8 +73,16 @@ def test_gltf_plain_accessors_and_node_transform(tmp_path):
     js = json.dumps(doc).encode()
     js += b" " * (-len(js) % 4)
     pad = data + b"\0" * (-len(data) % 4)
-    glb = (b"glTF" + struct.pack("<II", 2, 28 + len(js) + len(pad)) + struct.pack("<I", len(js)) + b"JSON" + js
-           + struct.pack("<I", len(pad)) + b"BIN\0" + pad)
+    glb = (
+        b"glTF"
+        + struct.pack("<II", 2, 28 + len(js) + len(pad))
+        + struct.pack("<I", len(js))
+        + b"JSON"
+        + js
+        + struct.pack("<I", len(pad))
+        + b"BIN\0"
+        + pad
+    )
     (tmp_path / "m.glb").write_bytes(glb)
     np.testing.assert_allclose(load_mesh(tmp_path / "m.glb").vertices, m.vertices)
 
@@ -58,11 +91,17 @@ def test_gltf_draco(tmp_path):
     DracoPy = pytest.importorskip("DracoPy")
     uv = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float64)
     blob = DracoPy.encode(QUAD_V, QUAD_F, preserve_order=True, tex_coord=uv)
-    prim = {"attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2, "material": 0,
-            "extensions": {"KHR_draco_mesh_compression": {"bufferView": 0, "attributes": {"POSITION": 0,
-                                                                                          "TEXCOORD_0": 1}}}}
-    acc = [{"componentType": 5126, "count": 4, "type": "VEC3"}, {"componentType": 5126, "count": 4, "type": "VEC2"},
-           {"componentType": 5123, "count": 6, "type": "SCALAR"}]
+    prim = {
+        "attributes": {"POSITION": 0, "TEXCOORD_0": 1},
+        "indices": 2,
+        "material": 0,
+        "extensions": {"KHR_draco_mesh_compression": {"bufferView": 0, "attributes": {"POSITION": 0, "TEXCOORD_0": 1}}},
+    }
+    acc = [
+        {"componentType": 5126, "count": 4, "type": "VEC3"},
+        {"componentType": 5126, "count": 4, "type": "VEC2"},
+        {"componentType": 5123, "count": 6, "type": "SCALAR"},
+    ]
     path, _ = _gltf(tmp_path, prim, [blob], [{"buffer": 0, "byteLength": len(blob)}], acc, {})
     m = load_gltf(path)
     assert m.faces.shape == (2, 3)
@@ -80,8 +119,10 @@ def test_obj_with_texture(tmp_path):
 
     Image.fromarray(np.full((4, 4, 3), (255, 0, 0), np.uint8)).save(tmp_path / "tex.png")
     (tmp_path / "m.mtl").write_text("newmtl red\nKd 1 1 1\nmap_Kd tex.png\n")
-    (tmp_path / "m.obj").write_text("mtllib m.mtl\nv -1 -1 0\nv 1 -1 0\nv 1 1 0\nv -1 1 0\n"
-                                    "vt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\nusemtl red\nf 1/1 2/2 3/3\nf 1/1 3/3 4/4\n")
+    (tmp_path / "m.obj").write_text(
+        "mtllib m.mtl\nv -1 -1 0\nv 1 -1 0\nv 1 1 0\nv -1 1 0\n"
+        "vt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\nusemtl red\nf 1/1 2/2 3/3\nf 1/1 3/3 4/4\n"
+    )
     m = load_mesh(tmp_path / "m.obj")
     assert m.faces.shape == (2, 3) and len(m.textures) == 1
     np.testing.assert_allclose(m.textures[0][0, 0], [1, 0, 0])
@@ -163,8 +204,9 @@ def test_corpus_pairs_train_chain(tmp_path):
     for name, hold in (("a", False), ("b", True)):
         np.savez_compressed(pairs / f"{name}.npz", **arrays, holdout=np.bool_(hold))
     pack_pairs(pairs, tmp_path / "pack.npz")
-    cfg = PriorConfig(d_channels=8, d_steps=4, d_batch=2, d_crop=8, u_channels=8, u_steps=4, u_batch=2, u_crop=16,
-                      eval_every=2)
+    cfg = PriorConfig(
+        d_channels=8, d_steps=4, d_batch=2, d_crop=8, u_channels=8, u_steps=4, u_batch=2, u_crop=16, eval_every=2
+    )
     rec = train_prior(tmp_path / "pack.npz", tmp_path / "prior", cfg, torch.device("cpu"), log=lambda m: None)
     assert rec["pairs"] == 8 and rec["holdout_pairs"] == 4
     D, d_cfg = load_model(tmp_path / "prior" / "D")
@@ -179,8 +221,9 @@ def test_corpus_pairs_train_chain(tmp_path):
     net = SilhouetteNetConfig(channels=8, levels=2, work_size=48)
     data = load_shape_pairs(pairs, net.work_size)
     assert data["inputs"].shape == (8, 6, 48, 48) and int(data["holdout"].sum()) == 4  # at S's working size
-    S, curve = train_silhouette(data, ShapeTrainConfig(net=net, steps=3, batch=2, eval_every=2), torch.device("cpu"),
-                                log=lambda m: None)
+    S, curve = train_silhouette(
+        data, ShapeTrainConfig(net=net, steps=3, batch=2, eval_every=2), torch.device("cpu"), log=lambda m: None
+    )
     assert isinstance(S, SilhouetteNet) and S.config.levels == 2 and curve["step"] == [2, 3]
     assert 0 <= curve["val"][-1]["S_iou"] <= 1 and curve["val"][-1]["hull_missed"] < 0.05
 
@@ -215,15 +258,14 @@ def test_volume_pairs_train_chain(tmp_path):
 def test_prior_finetune_keeps_the_prior_unless_beaten():
     from wgs.config import FinetuneConfig
     from wgs.models.storage import load_model
-    from wgs.prior import WEIGHTS
-    from wgs.stages.s3_finetune import finetune_prior_d
+    from wgs.training.per_object import finetune_prior_d
+    from wgs.weights import WEIGHTS
 
     g = torch.Generator().manual_seed(0)
     clean = torch.rand(6, 3, 16, 16, generator=g) * 2 - 1
     bad = clean + 0.3 * torch.randn(6, 3, 16, 16, generator=g)
     cfg = FinetuneConfig(prior_steps=4, prior_eval_every=2, prior_lr=0.5, d_batch=2, d_crop=8)  # a harmful lr
-    model, meta, curve = finetune_prior_d(cfg, WEIGHTS, clean[:4], bad[:4], clean[4:], bad[4:],
-                                           torch.device("cpu"), g)
+    model, meta, curve = finetune_prior_d(cfg, WEIGHTS, clean[:4], bad[:4], clean[4:], bad[4:], torch.device("cpu"), g)
     assert meta.start == "corrupted" and meta.prior == str(WEIGHTS)
     assert curve["best"] <= curve["bar"]
     if curve["best"] == curve["bar"]:  # nothing beat the prior: its weights are back
@@ -236,7 +278,7 @@ def test_single_step_is_deterministic_at_t0():
     from wgs.models.sampling import single_step
     from wgs.models.scheduler import DDIMScheduler
     from wgs.models.storage import load_model
-    from wgs.prior import WEIGHTS
+    from wgs.weights import WEIGHTS
 
     D, d_cfg = load_model(WEIGHTS / "D")
     x = torch.rand(1, 3, 20, 24) * 2 - 1
@@ -247,7 +289,7 @@ def test_single_step_is_deterministic_at_t0():
 
 def test_shipped_prior_loads_with_provenance():
     from wgs.models.storage import load_model
-    from wgs.prior import WEIGHTS
+    from wgs.weights import WEIGHTS
 
     for name in ("D", "U"):
         model, cfg = load_model(WEIGHTS / name)
@@ -261,7 +303,7 @@ def test_shipped_prior_loads_with_provenance():
 def test_shipped_silhouette_model_loads_with_provenance():
     from wgs.models.silhouette_net import SilhouetteNet
     from wgs.models.storage import load_model
-    from wgs.prior import WEIGHTS_S
+    from wgs.weights import WEIGHTS_S
 
     model, _ = load_model(WEIGHTS_S)
     assert isinstance(model, SilhouetteNet)
@@ -274,7 +316,7 @@ def test_shipped_silhouette_model_loads_with_provenance():
 def test_shipped_volume_model_loads_with_provenance():
     from wgs.models.storage import load_model
     from wgs.models.volume_net import VolumeNet
-    from wgs.prior import WEIGHTS_V
+    from wgs.weights import WEIGHTS_V
 
     model, _ = load_model(WEIGHTS_V)
     assert isinstance(model, VolumeNet)
@@ -332,11 +374,17 @@ def test_prior_training_continues_from_its_state_and_starts_from_a_prior(tmp_pat
         train_d(PriorConfig(d_steps=6, **small), *args, log=lambda m: None, state_path=state)
 
     first = tmp_path / "first"
-    train_prior(tmp_path / "pack.npz", first, PriorConfig(d_steps=2, u_steps=2, u_channels=8, u_crop=8, **small),
-                torch.device("cpu"), log=lambda m: None)
+    train_prior(
+        tmp_path / "pack.npz",
+        first,
+        PriorConfig(d_steps=2, u_steps=2, u_channels=8, u_crop=8, **small),
+        torch.device("cpu"),
+        log=lambda m: None,
+    )
     frozen = PriorConfig(d_steps=2, d_lr=0.0, u_steps=0, u_channels=8, **small)  # no step moves the weights
-    rec = train_prior(tmp_path / "pack.npz", tmp_path / "second", frozen, torch.device("cpu"), log=lambda m: None,
-                      init=first)
+    rec = train_prior(
+        tmp_path / "pack.npz", tmp_path / "second", frozen, torch.device("cpu"), log=lambda m: None, init=first
+    )
     assert rec["init"]["path"] == str(first) and rec["init"]["provenance"]["pairs"] == 8
     for name in ("D", "U"):
         a, b = load_model(first / name)[0], load_model(tmp_path / "second" / name)[0]

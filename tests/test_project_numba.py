@@ -53,8 +53,10 @@ def test_values_match_the_reference(dtype):
 def test_gradients_match_the_reference():
     args = scene()
     g = torch.Generator().manual_seed(1)
-    w_m, w_c = torch.randn(500, 2, generator=g, dtype=torch.float64), torch.randn(500, 3, generator=g,
-                                                                                   dtype=torch.float64)
+    w_m, w_c = (
+        torch.randn(500, 2, generator=g, dtype=torch.float64),
+        torch.randn(500, 3, generator=g, dtype=torch.float64),
+    )
     grads = []
     for fn in (project_gaussians_numba, project_gaussians):
         leaves = [t.clone().requires_grad_(True) for t in args[:3]]
@@ -109,7 +111,17 @@ def test_rejects_a_camera_that_needs_gradients_by_using_the_reference():
 
     means, quats, scales, viewmat, K = scene(n=50, dtype=torch.float64)
     viewmat = viewmat.clone().requires_grad_(True)
-    rgb, alpha, _ = rasterize(means, quats, scales, torch.full((50,), 0.5, dtype=torch.float64),
-                              torch.rand(50, 3, dtype=torch.float64), viewmat, K, W, H, backend="numba")
+    rgb, alpha, _ = rasterize(
+        means,
+        quats,
+        scales,
+        torch.full((50,), 0.5, dtype=torch.float64),
+        torch.rand(50, 3, dtype=torch.float64),
+        viewmat,
+        K,
+        W,
+        H,
+        backend="numba",
+    )
     (rgb.sum() + alpha.sum()).backward()
     assert viewmat.grad is not None and torch.isfinite(viewmat.grad).all() and viewmat.grad.abs().sum() > 0

@@ -49,8 +49,10 @@ def test_fast_path_matches_reference(n, size, w_scale):
 def test_fast_path_sh_and_depth():
     means, quats, scales, opac, _, viewmat, K = random_scene(400, 32, seed=3)
     sh = torch.randn(400, 9, 3, generator=torch.Generator().manual_seed(0)) * 0.3
-    outs = [rasterize(means, quats, scales, opac, sh, viewmat, K, 32, 32, render_depth=True, backend=be)
-            for be in ("numba", "torch")]
+    outs = [
+        rasterize(means, quats, scales, opac, sh, viewmat, K, 32, 32, render_depth=True, backend=be)
+        for be in ("numba", "torch")
+    ]
     assert (outs[0][0] - outs[1][0]).abs().max() < 1e-5
     assert (outs[0][2]["depth"] - outs[1][2]["depth"]).abs().max() < 1e-4
     d = outs[0][2]["depth"] / outs[0][1].clamp_min(1e-6)
@@ -70,8 +72,19 @@ def test_reference_gradcheck_float64():
     viewmat = viewmat.clone().requires_grad_(True)  # the pose is differentiable too
 
     def f(means, quats, scales, opac, colors, viewmat):
-        rgb, alpha, _ = rasterize(means, quats, scales, opac, colors, viewmat, K, w, h,
-                                  torch.tensor([0.1, 0.2, 0.3], dtype=dt), backend="torch")
+        rgb, alpha, _ = rasterize(
+            means,
+            quats,
+            scales,
+            opac,
+            colors,
+            viewmat,
+            K,
+            w,
+            h,
+            torch.tensor([0.1, 0.2, 0.3], dtype=dt),
+            backend="torch",
+        )
         return rgb, alpha
 
     assert torch.autograd.gradcheck(f, (means, quats, scales, opac, colors, viewmat), eps=1e-6, atol=1e-5)
@@ -81,9 +94,18 @@ def test_single_isotropic_gaussian_is_analytic():
     size, f, z, s, o = 33, 40.0, 2.5, 0.1, 0.5
     viewmat, K = camera(size, f=f, dtype=torch.float64)
     means = torch.zeros(1, 3, dtype=torch.float64)
-    rgb, alpha, _ = rasterize(means, torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64),
-                              torch.full((1, 3), s, dtype=torch.float64), torch.tensor([o], dtype=torch.float64),
-                              torch.ones(1, 3, dtype=torch.float64), viewmat, K, size, size, backend="torch")
+    rgb, alpha, _ = rasterize(
+        means,
+        torch.tensor([[1.0, 0, 0, 0]], dtype=torch.float64),
+        torch.full((1, 3), s, dtype=torch.float64),
+        torch.tensor([o], dtype=torch.float64),
+        torch.ones(1, 3, dtype=torch.float64),
+        viewmat,
+        K,
+        size,
+        size,
+        backend="torch",
+    )
     var = (f * s / z) ** 2 + 0.3  # EWA variance plus the 0.3 px² dilation
     ax = torch.arange(size, dtype=torch.float64) + 0.5
     ys, xs = torch.meshgrid(ax, ax, indexing="ij")
@@ -92,8 +114,18 @@ def test_single_isotropic_gaussian_is_analytic():
     expected = torch.where((r2 / var <= 9) & (expected >= 1 / 255), expected, torch.zeros_like(expected))
     torch.testing.assert_close(alpha[..., 0], expected.to(alpha.dtype), atol=1e-9, rtol=1e-9)
     torch.testing.assert_close(rgb[..., 0], expected.to(rgb.dtype), atol=1e-9, rtol=1e-9)
-    fast = rasterize(means.float(), torch.tensor([[1.0, 0, 0, 0]]), torch.full((1, 3), s), torch.tensor([o]),
-                     torch.ones(1, 3), viewmat.float(), K.float(), size, size, backend="numba")[1]
+    fast = rasterize(
+        means.float(),
+        torch.tensor([[1.0, 0, 0, 0]]),
+        torch.full((1, 3), s),
+        torch.tensor([o]),
+        torch.ones(1, 3),
+        viewmat.float(),
+        K.float(),
+        size,
+        size,
+        backend="numba",
+    )[1]
     torch.testing.assert_close(fast[..., 0], expected.float(), atol=1e-6, rtol=1e-5)
 
 
@@ -111,10 +143,10 @@ def test_two_opaque_gaussians_composite_in_depth_order(backend):
     a_front = 0.9 * math.exp(-0.5 * 0.5 / ((20 / 2.0) ** 2 + 0.3))
     a_back = 0.9 * math.exp(-0.5 * 0.5 / ((20 / 3.0) ** 2 + 0.3))
     torch.testing.assert_close(c, torch.tensor([a_back * (1 - a_front), a_front, 0.0]), atol=1e-4, rtol=0)
-    torch.testing.assert_close(alpha[size // 2 - 1, size // 2 - 1, 0],
-                               torch.tensor(1 - (1 - a_front) * (1 - a_back)), atol=1e-4, rtol=0)
-    rgb2, _, _ = rasterize(means.flip(0), quats, scales, opac, colors.flip(0), viewmat, K, size, size,
-                           backend=backend)
+    torch.testing.assert_close(
+        alpha[size // 2 - 1, size // 2 - 1, 0], torch.tensor(1 - (1 - a_front) * (1 - a_back)), atol=1e-4, rtol=0
+    )
+    rgb2, _, _ = rasterize(means.flip(0), quats, scales, opac, colors.flip(0), viewmat, K, size, size, backend=backend)
     torch.testing.assert_close(rgb, rgb2)  # input order does not matter, depth does
 
 
@@ -134,22 +166,69 @@ def test_projection_culls_behind_and_offscreen():
 def test_reference_rejects_bad_shapes():
     viewmat, K = camera(8)
     with pytest.raises(ValueError, match="quats"):
-        rasterize(torch.zeros(2, 3), torch.zeros(2, 3), torch.ones(2, 3), torch.ones(2), torch.ones(2, 3),
-                  viewmat, K, 8, 8)
+        rasterize(
+            torch.zeros(2, 3), torch.zeros(2, 3), torch.ones(2, 3), torch.ones(2), torch.ones(2, 3), viewmat, K, 8, 8
+        )
 
 
 def test_empty_scene_gives_background():
     viewmat, K = camera(8)
     bg = torch.tensor([0.2, 0.4, 0.6])
     for be in ("numba", "torch"):
-        rgb, alpha, _ = rasterize(torch.zeros(0, 3), torch.zeros(0, 4), torch.zeros(0, 3), torch.zeros(0),
-                                  torch.zeros(0, 3), viewmat, K, 8, 8, bg, backend=be)
+        rgb, alpha, _ = rasterize(
+            torch.zeros(0, 3),
+            torch.zeros(0, 4),
+            torch.zeros(0, 3),
+            torch.zeros(0),
+            torch.zeros(0, 3),
+            viewmat,
+            K,
+            8,
+            8,
+            bg,
+            backend=be,
+        )
         assert torch.allclose(rgb, bg.expand(8, 8, 3)) and (alpha == 0).all()
 
 
 def test_raster_pixels_direct_call_is_documented_shape():
     m = torch.tensor([[4.0, 4.0]])
-    out, a = rasterize_pixels_torch(m, torch.tensor([[0.5, 0.0, 0.5]]), torch.ones(1, 2), torch.tensor([0.5]),
-                                    torch.tensor([1.0]), torch.tensor([[5.0, 5.0]]), torch.tensor([True]), 8, 6,
-                                    torch.zeros(2))
+    out, a = rasterize_pixels_torch(
+        m,
+        torch.tensor([[0.5, 0.0, 0.5]]),
+        torch.ones(1, 2),
+        torch.tensor([0.5]),
+        torch.tensor([1.0]),
+        torch.tensor([[5.0, 5.0]]),
+        torch.tensor([True]),
+        8,
+        6,
+        torch.zeros(2),
+    )
     assert out.shape == (6, 8, 2) and a.shape == (6, 8, 1)
+
+
+def test_fast_depth_order_is_the_stable_reference_order():
+    from wgs.gaussians.raster_numba import _depth_order
+    from wgs.gaussians.raster_torch import depth_order
+
+    g = torch.Generator().manual_seed(0)
+    depths = torch.randint(1, 50, (5000,), generator=g).float() / 7  # many ties: the order must stay stable
+    visible = torch.rand(5000, generator=g) > 0.2
+    assert (torch.from_numpy(_depth_order(depths, visible)) == depth_order(depths, visible)).all()
+    assert (torch.from_numpy(_depth_order(depths.double(), visible)) == depth_order(depths, visible)).all()
+
+
+def test_per_gaussian_sums_match_index_add():
+    import numpy as np
+
+    from wgs.gaussians.raster_numba import _sum_per_gaussian
+
+    g = torch.Generator().manual_seed(1)
+    ids = torch.randint(0, 300, (4000,), generator=g)
+    rows = torch.randn(4000, 9, generator=g)
+    order = torch.argsort(ids, stable=True)
+    starts = torch.zeros(301, dtype=torch.int64)
+    starts[1:] = torch.bincount(ids, minlength=300).cumsum(0)
+    fast = _sum_per_gaussian(rows.numpy(), order.numpy().astype(np.int64), starts.numpy())
+    assert torch.equal(torch.from_numpy(fast), torch.zeros(300, 9).index_add_(0, ids, rows))  # bit for bit

@@ -18,15 +18,15 @@ from conftest import TINY, make_scene
 import wgs.resume
 from wgs.config import FinetuneConfig
 from wgs.resume import Checkpointer, Interrupted
-from wgs.stages.s3_finetune import train_hf_unet, train_scratch_d
 from wgs.stress import STACK_MARKERS, max_param_difference, outcome
+from wgs.training.per_object import train_hf_unet, train_scratch_d
 
 pytestmark = pytest.mark.slow  # `pytest -m 'not slow'` for a quick loop; make test runs all
 
 # TINY with longer coarse and mask-data loops, so a kill lands in their middle
-CFG = (TINY.replace("iterations = 30\nrefine_start = 10\nrefine_every = 10",
-                    "iterations = 150\nrefine_start = 20\nrefine_every = 20")
-       .replace("warmup = 10\npair_every = 10", "warmup = 50\npair_every = 25"))
+CFG = TINY.replace(
+    "iterations = 30\nrefine_start = 10\nrefine_every = 10", "iterations = 150\nrefine_start = 20\nrefine_every = 20"
+).replace("warmup = 10\npair_every = 10", "warmup = 50\npair_every = 25")
 
 
 @pytest.fixture(scope="module")
@@ -41,8 +41,20 @@ def setup(tmp_path_factory):
 
 
 def wgs_cmd(ws: Path, cfg: Path, *args: str, resume: bool = False, quiet: bool = True) -> list[str]:
-    return [sys.executable, "-m", "wgs", *(["-q"] if quiet else []), "--config", str(cfg), "--checkpoint-every", "0",
-            *(["--resume"] if resume else []), "-w", str(ws), *args]
+    return [
+        sys.executable,
+        "-m",
+        "wgs",
+        *(["-q"] if quiet else []),
+        "--config",
+        str(cfg),
+        "--checkpoint-every",
+        "0",
+        *(["--resume"] if resume else []),
+        "-w",
+        str(ws),
+        *args,
+    ]
 
 
 def start_and_signal_when(cmd: list[str], trigger: Path, sig: int, timeout: float = 120) -> subprocess.Popen:
@@ -76,16 +88,20 @@ def test_sigkill_in_mask_data_then_resume_gives_the_uninterrupted_result(setup, 
     assert not (ws / ".resume").exists()  # cleaned up once every stage finished
 
 
-def test_ctrl_c_saves_state_with_one_line_and_resume_continues(setup, tmp_path):
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGUSR1])
+def test_ctrl_c_saves_state_with_one_line_and_resume_continues(setup, tmp_path, sig):
+    """Ctrl-C, or Slurm's --signal=USR1, in `wgs coarse`: the loop saves, one line, exit 128 + the
+    signal; `wgs --resume coarse` ends with the uninterrupted run's model."""
     scene, cfg, ref = setup
     ws = tmp_path / "ws"
     subprocess.run(wgs_cmd(ws, cfg, "prepare", str(scene)), check=True, capture_output=True)
-    proc = start_and_signal_when(wgs_cmd(ws, cfg, "coarse"), ws / ".resume/1_coarse/gc.pt", signal.SIGINT)
+    proc = start_and_signal_when(wgs_cmd(ws, cfg, "coarse"), ws / ".resume/1_coarse/gc.pt", sig)
     _, err = proc.communicate(timeout=120)
-    assert proc.returncode == 130
+    assert proc.returncode == 128 + sig
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("interrupted: coarse stopped after step"), err
     assert "--resume" in lines[0] and "Traceback" not in err
+    assert sig == signal.SIGINT or f"({sig.name})" in lines[0]
     stopped = torch.load(ws / ".resume/1_coarse/gc.pt", weights_only=True)["it"]
     assert 0 < stopped < 150 and not (ws / "1_coarse").exists()
     res = subprocess.run(wgs_cmd(ws, cfg, "coarse", resume=True), capture_output=True, text=True)
@@ -95,13 +111,14 @@ def test_ctrl_c_saves_state_with_one_line_and_resume_continues(setup, tmp_path):
     assert all(torch.equal(a[k], b[k]) for k in b)
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGUSR1])
-def test_a_scheduler_stop_signal_saves_with_one_line_and_resume_finishes_identically(setup, tmp_path, sig):
-    """Slurm's SIGTERM (or --signal=USR1) in `wgs all`, whose prepare stage loaded pycolmap (its glog
-    answers SIGTERM with a native stack trace unless wgs puts its own handler back): the loop saves,
-    one line, exit 128 + the signal; `wgs --resume all` ends with the uninterrupted run's model.
-    (`python -m wgs.stress signal-loop` sends each signal at 10 random moments.)"""
+def test_a_scheduler_stop_signal_saves_with_one_line_and_resume_finishes_identically(setup, tmp_path):
+    """Slurm's SIGTERM in `wgs all`, whose prepare stage loaded pycolmap (its glog answers SIGTERM
+    with a native stack trace unless wgs puts its own handler back): the loop saves, one line, exit
+    128 + the signal; `wgs --resume all` ends with the uninterrupted run's model. (SIGUSR1, which
+    glog leaves alone, in the test above; `python -m wgs.stress signal-loop` sends each signal at 10
+    random moments.)"""
     scene, cfg, ref = setup
+    sig = signal.SIGTERM
     ws = tmp_path / "ws"
     proc = start_and_signal_when(wgs_cmd(ws, cfg, "all", str(scene)), ws / ".resume/1_coarse/gc.pt", sig)
     _, err = proc.communicate(timeout=120)
@@ -118,14 +135,16 @@ def test_a_scheduler_stop_signal_saves_with_one_line_and_resume_finishes_identic
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGUSR1])
 def test_a_stop_signal_outside_a_loop_stops_at_once_after_pycolmap_loaded(sig):
-    code = ("import os, signal, time\n"
-            "from wgs.resume import Stopped, install_stop_handlers\n"
-            "install_stop_handlers()\n"
-            "import wgs.scene.colmap  # pycolmap: its glog installs a native handler on import\n"
-            "try:\n"
-            f"    os.kill(os.getpid(), {int(sig)}); time.sleep(10)\n"
-            "except Stopped as exc:\n"
-            "    print('stopped', exc.signum)\n")
+    code = (
+        "import os, signal, time\n"
+        "from wgs.resume import Stopped, install_stop_handlers\n"
+        "install_stop_handlers()\n"
+        "import wgs.scene.colmap  # pycolmap: its glog installs a native handler on import\n"
+        "try:\n"
+        f"    os.kill(os.getpid(), {int(sig)}); time.sleep(10)\n"
+        "except Stopped as exc:\n"
+        "    print('stopped', exc.signum)\n"
+    )
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert res.returncode == 0 and res.stdout.strip() == f"stopped {int(sig)}", res.stdout + res.stderr
     assert not any(m in res.stderr for m in STACK_MARKERS), res.stderr
@@ -144,8 +163,9 @@ def coarse_killed_midway(setup, tmp_path) -> Path:
 def test_saved_state_of_other_settings_is_not_resumed(setup, tmp_path):
     _, cfg, _ = setup
     ws = coarse_killed_midway(setup, tmp_path)
-    res = subprocess.run(wgs_cmd(ws, cfg, "coarse", "--iterations", "40", resume=True, quiet=False),
-                         capture_output=True, text=True)
+    res = subprocess.run(
+        wgs_cmd(ws, cfg, "coarse", "--iterations", "40", resume=True, quiet=False), capture_output=True, text=True
+    )
     assert res.returncode == 0, res.stderr
     assert "belongs to other inputs or settings: starting over" in res.stderr
     assert torch.load(ws / "1_coarse/ckpt.pt", weights_only=True)["step"] == 40
@@ -173,8 +193,18 @@ def interrupt_at(monkeypatch, at: int) -> None:
 
 @pytest.mark.parametrize("loop", ["D", "U"])
 def test_finetune_loops_resume_exactly(loop, tmp_path, monkeypatch):
-    cfg = FinetuneConfig(d_steps=12, d_channels=8, d_batch=2, d_crop=16, u_max_steps=12, u_channels=8,
-                         u_batch=2, u_crop=8, u_eval_every=3, u_patience=100)
+    cfg = FinetuneConfig(
+        d_steps=12,
+        d_channels=8,
+        d_batch=2,
+        d_crop=16,
+        u_max_steps=12,
+        u_channels=8,
+        u_batch=2,
+        u_crop=8,
+        u_eval_every=3,
+        u_patience=100,
+    )
     g = torch.Generator().manual_seed(0)
     a, b = torch.rand(6, 3, 32, 32, generator=g) * 2 - 1, torch.rand(6, 3, 32, 32, generator=g) * 2 - 1
 
@@ -229,16 +259,35 @@ def test_a_finished_loop_resumes_to_its_result_without_moments(tmp_path):
     from wgs.gaussians.trainer import train_gaussians
     from wgs.scene.dataset import Frame
 
-    f = Frame(torch.tensor([[20.0, 0, 8], [0, 20, 8], [0, 0, 1]]),
-              torch.tensor(ring_w2c()[0], dtype=torch.float32), 16, 16, name="a.png",
-              image=torch.rand(16, 16, 3))
+    f = Frame(
+        torch.tensor([[20.0, 0, 8], [0, 20, 8], [0, 0, 1]]),
+        torch.tensor(ring_w2c()[0], dtype=torch.float32),
+        16,
+        16,
+        name="a.png",
+        image=torch.rand(16, 16, 3),
+    )
     sp = create_splats(torch.randn(40, 3) * 0.1, torch.rand(40, 3), torch.full((40,), 0.05), 0)
     cfg = TrainConfig(iterations=6, refine_start=100, floater_every=0, log_every=1)
-    first = train_gaussians(sp, [f], cfg, torch.device("cpu"), extent=1.0, has_masks=False,
-                            checkpoint=Checkpointer(tmp_path / "s.pt", every_s=1e9, resume=False))
+    first = train_gaussians(
+        sp,
+        [f],
+        cfg,
+        torch.device("cpu"),
+        extent=1.0,
+        has_masks=False,
+        checkpoint=Checkpointer(tmp_path / "s.pt", every_s=1e9, resume=False),
+    )
     saved = torch.load(tmp_path / "s.pt", weights_only=True)
     assert saved["finished"] and "optimizers" not in saved
-    again = train_gaussians(sp, [f], cfg, torch.device("cpu"), extent=1.0, has_masks=False,
-                            checkpoint=Checkpointer(tmp_path / "s.pt", every_s=1e9, resume=True))
+    again = train_gaussians(
+        sp,
+        [f],
+        cfg,
+        torch.device("cpu"),
+        extent=1.0,
+        has_masks=False,
+        checkpoint=Checkpointer(tmp_path / "s.pt", every_s=1e9, resume=True),
+    )
     assert again.iterations == first.iterations == 6 and again.losses == first.losses
     assert all(torch.equal(again.splats[k], first.splats[k]) for k in first.splats)

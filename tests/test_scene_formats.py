@@ -17,8 +17,9 @@ from wgs.workspace import Workspace
 
 def prepare(scene, ws, *args):
     """`wgs prepare` without mirror views: these tests compare the photos' own cameras."""
-    res = CliRunner().invoke(cli, ["-q", "-w", str(ws), "prepare", str(scene), "--mirror", "none", *args],
-                             catch_exceptions=False)
+    res = CliRunner().invoke(
+        cli, ["-q", "-w", str(ws), "prepare", str(scene), "--mirror", "none", *args], catch_exceptions=False
+    )
     assert res.exit_code == 0, res.output
     return Workspace(ws)
 
@@ -126,8 +127,13 @@ def test_colmap_distorted_is_undistorted(scene_formats, tmp_path):
     rec = pycolmap.Reconstruction(str(d / "sparse" / "0"))
     for cam in rec.cameras.values():
         fx, fy, cx, cy = cam.params
-        rec.cameras[cam.camera_id] = pycolmap.Camera(camera_id=cam.camera_id, model="OPENCV", width=cam.width,
-                                                     height=cam.height, params=[fx, fy, cx, cy, 0.05, 0, 0, 0])
+        rec.cameras[cam.camera_id] = pycolmap.Camera(
+            camera_id=cam.camera_id,
+            model="OPENCV",
+            width=cam.width,
+            height=cam.height,
+            params=[fx, fy, cx, cy, 0.05, 0, 0, 0],
+        )
     rec.write_text(str(d / "sparse" / "0"))
     ws = prepare(d, tmp_path / "ws")
     sc = load_prepared(ws.stage_dir("scene"))

@@ -104,7 +104,7 @@ def test_features_only_inside_the_masks(tmp_path):
                 continue
             x, y = np.floor(p.xy).astype(int)
             total += 1
-            near = mask[max(y - 6, 0):y + 7, max(x - 6, 0):x + 7]  # the mask is dilated for COLMAP
+            near = mask[max(y - 6, 0) : y + 7, max(x - 6, 0) : x + 7]  # the mask is dilated for COLMAP
             outside += not near.any()
     assert total > 300 and outside == 0, (outside, total)
     assert len(cams) == 20
@@ -155,8 +155,9 @@ def test_unknown_matcher_is_refused(photos, tmp_path):
     proc = run_cli(["-w", tmp_path / "ws", "prepare", root, "--matcher", "vocab"], tmp_path)
     assert proc.returncode == 2 and "vocab" in proc.stderr
     (tmp_path / "wgs.toml").write_text('[prepare]\nmatcher = "vocab"\n')
-    expect_error(tmp_path, ["--config", tmp_path / "wgs.toml", "-w", tmp_path / "ws", "prepare", root],
-                 "matcher", "vocab")
+    expect_error(
+        tmp_path, ["--config", tmp_path / "wgs.toml", "-w", tmp_path / "ws", "prepare", root], "matcher", "vocab"
+    )
 
 
 def test_a_photo_without_its_mask(tmp_path):
@@ -191,8 +192,16 @@ def to_llff_pose(w2c: np.ndarray, h: int, w: int, f: float) -> np.ndarray:
     return np.stack([down, right, -fwd, center, [h, w, f]], axis=1)
 
 
-def make_llff(root: Path, n: int = 6, h: int = 24, w: int = 32, f: float = 30.0, folder: str = "images",
-              scale: int = 1, masks: bool = False) -> list[np.ndarray]:
+def make_llff(
+    root: Path,
+    n: int = 6,
+    h: int = 24,
+    w: int = 32,
+    f: float = 30.0,
+    folder: str = "images",
+    scale: int = 1,
+    masks: bool = False,
+) -> list[np.ndarray]:
     root.mkdir(parents=True, exist_ok=True)
     w2cs = ring_w2c(n, radius=3.0, height=0.4)
     rows = [np.concatenate([to_llff_pose(m, h, w, f).reshape(-1), [0.5, 6.0]]) for m in w2cs]
@@ -231,12 +240,17 @@ def test_llff_prepare_end_to_end(tmp_path):
     assert json.loads((tmp_path / "ws" / "scene" / "scene.json").read_text())["format"] == "llff"
 
 
-@pytest.mark.parametrize("bad, needle", [("shape", "[N, 17]"), ("count", "poses for"), ("nan", "NaN"),
-                                         ("focal", "non-positive")])
+@pytest.mark.parametrize(
+    "bad, needle", [("shape", "[N, 17]"), ("count", "poses for"), ("nan", "NaN"), ("focal", "non-positive")]
+)
 def test_llff_bad_poses(tmp_path, bad, needle):
     make_llff(tmp_path / "s")
     arr = np.load(tmp_path / "s" / "poses_bounds.npy")
-    arr = {"shape": arr[:, :15], "count": arr[:5], "nan": np.where(np.arange(17) == 3, np.nan, arr),
-           "focal": np.concatenate([arr[:, :14], -arr[:, 14:15], arr[:, 15:]], 1)}[bad]
+    arr = {
+        "shape": arr[:, :15],
+        "count": arr[:5],
+        "nan": np.where(np.arange(17) == 3, np.nan, arr),
+        "focal": np.concatenate([arr[:, :14], -arr[:, 14:15], arr[:, 15:]], 1),
+    }[bad]
     np.save(tmp_path / "s" / "poses_bounds.npy", arr)
     expect_error(tmp_path, ["-w", tmp_path / "ws", "prepare", tmp_path / "s"], "poses_bounds.npy", needle)

@@ -23,7 +23,7 @@ def sphere_quadrature(n_theta: int = 12, n_phi: int = 24):
     x, w = np.polynomial.legendre.leggauss(n_theta)
     phi = (np.arange(n_phi) + 0.5) * 2 * math.pi / n_phi
     ct, ph = np.meshgrid(x, phi, indexing="ij")
-    st = np.sqrt(1 - ct ** 2)
+    st = np.sqrt(1 - ct**2)
     dirs = np.stack([st * np.cos(ph), st * np.sin(ph), ct], -1).reshape(-1, 3)
     weights = (w[:, None] * np.full(n_phi, 2 * math.pi / n_phi)[None, :]).reshape(-1)
     return torch.from_numpy(dirs), torch.from_numpy(weights)

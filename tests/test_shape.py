@@ -54,8 +54,18 @@ def true_mask(inside, cam: Camera, box: float = 0.7) -> torch.Tensor:
 
 
 def frames_of(inside, cams) -> list[Frame]:
-    return [Frame(c.K, c.viewmat, c.width, c.height, name=f"v{i}.png", image=torch.rand(SIZE, SIZE, 3),
-                  mask=true_mask(inside, c).float()) for i, c in enumerate(cams)]
+    return [
+        Frame(
+            c.K,
+            c.viewmat,
+            c.width,
+            c.height,
+            name=f"v{i}.png",
+            image=torch.rand(SIZE, SIZE, 3),
+            mask=true_mask(inside, c).float(),
+        )
+        for i, c in enumerate(cams)
+    ]
 
 
 @pytest.fixture(scope="module")
@@ -82,10 +92,24 @@ def test_hull_votes_fast_path_matches_reference(mug_hull, tolerate, off_frame):
     side, _ = mug_hull
     c = side[3]  # a view of another size: the kernel reads every mask from one packed buffer
     crop = torch.tensor([[2.0], [2.0], [1.0]])  # ... and a close-up that crops the mug
-    frames = side[:2] + [Frame(side[2].K * crop, side[2].viewmat, SIZE, SIZE, name="close.png",
-                               mask=true_mask(mug, Camera(side[2].K * crop, side[2].viewmat, SIZE, SIZE)).float()),
-                         Frame(c.K * torch.tensor([[0.5], [0.5], [1.0]]), c.viewmat, SIZE // 2, SIZE // 2,
-                               name="half.png", mask=(torch.rand(SIZE // 2, SIZE // 2) > 0.5).float())]
+    frames = side[:2] + [
+        Frame(
+            side[2].K * crop,
+            side[2].viewmat,
+            SIZE,
+            SIZE,
+            name="close.png",
+            mask=true_mask(mug, Camera(side[2].K * crop, side[2].viewmat, SIZE, SIZE)).float(),
+        ),
+        Frame(
+            c.K * torch.tensor([[0.5], [0.5], [1.0]]),
+            c.viewmat,
+            SIZE // 2,
+            SIZE // 2,
+            name="half.png",
+            mask=(torch.rand(SIZE // 2, SIZE // 2) > 0.5).float(),
+        ),
+    ]
     points = torch.rand(20000, 3) * 1.6 - 0.8
     fast = hull_votes(frames, points, tolerate, off_frame=off_frame)
     ref = hull_votes_torch(frames, points, tolerate, off_frame=off_frame)
@@ -102,13 +126,18 @@ def test_a_photo_abstains_only_where_the_object_runs_out_of_it():
     mask = torch.zeros(SIZE, SIZE)
     mask[40:60, : SIZE // 2] = 1.0  # runs out of the left edge only
     w2c = cam.viewmat
+
     def at(u, v, depth=2.0):  # the world point at pixel (u, v) and camera depth
         p_cam = torch.linalg.inv(cam.K) @ torch.tensor([u, v, 1.0]) * depth
         return ((p_cam - w2c[:3, 3]) @ w2c[:3, :3])[None]
-    cases = {(-20.0, 50.0): (False, True),  # off the left edge, beside the mask: abstain
-             (-20.0, 10.0): (False, False),  # off the left edge, beside background: background
-             (SIZE + 20.0, 50.0): (False, False),  # off the right edge: background
-             (20.0, 50.0): (True, False), (70.0, 50.0): (False, False)}
+
+    cases = {
+        (-20.0, 50.0): (False, True),  # off the left edge, beside the mask: abstain
+        (-20.0, 10.0): (False, False),  # off the left edge, beside background: background
+        (SIZE + 20.0, 50.0): (False, False),  # off the right edge: background
+        (20.0, 50.0): (True, False),
+        (70.0, 50.0): (False, False),
+    }
     for (u, v), expected in cases.items():
         holds, abstains = mask_lookup(cam, mask, at(u, v))
         assert (bool(holds), bool(abstains)) == expected, (u, v)
@@ -131,6 +160,7 @@ def test_hull_silhouette_is_the_mask_at_training_cameras_and_holds_the_object_el
 def test_hull_keeps_parts_thinner_than_its_first_pass_cells():
     """The first pass (32³ over the extent) only finds the hull's box; a thin part that none of its
     cell centres falls in must still be inside the box the second pass carves."""
+
     def lollipop(p):  # a ball of radius 0.12 and a 0.04-thick stick to x = 0.45
         stick = (p[:, 0] > 0.0) & (p[:, 0] < 0.45) & (p[:, 1].abs() < 0.02) & (p[:, 2].abs() < 0.02)
         return (p.norm(dim=-1) < 0.12) | stick
@@ -187,8 +217,9 @@ def test_carving_fat_hull_toward_truth_keeps_thin_handle(mug_hull):
     pseudo = [camera(a, e) for a in range(0, 360, 45) for e in (-60.0, 60.0)]
     oracle = [true_mask(mug, c).float() for c in pseudo]  # predictions that are right
     # a voxel is outside when one view's true silhouette leaves it out: no fraction of the views is asked
-    carved, counts = carve(grid, pseudo, oracle, side, CarveParams(min_views=2, min_fraction=0.0, max_carve=1.0,
-                                                                   dilate_px=1))
+    carved, counts = carve(
+        grid, pseudo, oracle, side, CarveParams(min_views=2, min_fraction=0.0, max_carve=1.0, dilate_px=1)
+    )
     after = [silhouette_scores(silhouette(carved, c)[0], true_mask(mug, c))["iou"] for c in (top, bottom)]
     assert counts["carved"] > 0
     assert all(a > b + 0.08 for a, b in zip(after, before, strict=True)) and min(after) > 0.88, (before, after)
@@ -204,10 +235,16 @@ def test_carving_never_uncovers_a_real_mask_pixel(mug_hull):
     gen = torch.Generator().manual_seed(0)
     pseudo = [camera(a, e) for a, e in ((0, 30), (100, -20), (220, 45), (300, 0))]
     for trial in range(3):  # predictions that are wrong on purpose: random blobs of "background"
-        wrong = [(torch.rand(SIZE // 8, SIZE // 8, generator=gen) > 0.3).float().repeat_interleave(8, 0)
-                 .repeat_interleave(8, 1) for _ in pseudo]
-        carved, counts = carve(grid, pseudo, wrong, side, CarveParams(min_views=1, min_fraction=0.1, max_carve=1.0,
-                                                                        dilate_px=0))
+        wrong = [
+            (torch.rand(SIZE // 8, SIZE // 8, generator=gen) > 0.3)
+            .float()
+            .repeat_interleave(8, 0)
+            .repeat_interleave(8, 1)
+            for _ in pseudo
+        ]
+        carved, counts = carve(
+            grid, pseudo, wrong, side, CarveParams(min_views=1, min_fraction=0.1, max_carve=1.0, dilate_px=0)
+        )
         assert counts["carved"] > 0
         for f in side:
             was = silhouette(grid, f)[0] & (f.mask > 0.5)
@@ -279,8 +316,17 @@ def test_volume_inputs_hold_the_strict_hull_and_do_not_depend_on_image_size(mug_
     assert torch.equal(x[0].reshape(-1) > 0.5, votes == len(side))
     assert ((x[1] > 0) == (x[0] > 0.5)).all() and (x[2] >= x[1]).all() and (x[3] == len(side) / 8).all()
     # the same views at twice the pixels: the scaled mask distances agree to about a pixel
-    big = [Frame(torch.diag(torch.tensor([2.0, 2.0, 1.0])) @ f.K, f.viewmat, 2 * SIZE, 2 * SIZE, name=f.name,
-                 mask=f.mask.repeat_interleave(2, 0).repeat_interleave(2, 1)) for f in side]
+    big = [
+        Frame(
+            torch.diag(torch.tensor([2.0, 2.0, 1.0])) @ f.K,
+            f.viewmat,
+            2 * SIZE,
+            2 * SIZE,
+            name=f.name,
+            mask=f.mask.repeat_interleave(2, 0).repeat_interleave(2, 1),
+        )
+        for f in side
+    ]
     x2 = volume_inputs(big, box)
     inside = x[0] > 0.5
     assert (x2[1] - x[1])[inside].abs().median() < 0.03
@@ -308,11 +354,12 @@ def test_volume_carving_toward_truth_keeps_the_handle_and_the_real_masks(mug_hul
         before = silhouette_scores(silhouette(grid, c)[0], true_mask(mug, c))["iou"]
         after = silhouette_scores(silhouette(carved, c)[0], true_mask(mug, c))["iou"]
         assert after > before + 0.08 and after > 0.88, (before, after)
-    handle = (mug(centres) & (centres[:, 0] > 0.31))
+    handle = mug(centres) & (centres[:, 0] > 0.31)
     assert handle.sum() > 20 and carved.occ.reshape(-1)[grid.occ.reshape(-1)][handle].all()
     gen = torch.Generator().manual_seed(1)
-    wrong, counts = carve_volume(grid, torch.rand(centres.shape[0], generator=gen), side,
-                                 CarveParams(max_carve=1.0, volume_empty_below=0.5))
+    wrong, counts = carve_volume(
+        grid, torch.rand(centres.shape[0], generator=gen), side, CarveParams(max_carve=1.0, volume_empty_below=0.5)
+    )
     assert counts["carved"] > 0 and counts["restored"] > 0
     for f in side:
         was = silhouette(grid, f)[0] & (f.mask > 0.5)
@@ -335,6 +382,7 @@ def test_a_volume_model_that_hurts_the_leave_one_out_silhouettes_is_left_out(mon
     views = frames_of(mug, [camera(a, e) for a, e in ((0, 0), (100, 10), (210, -10), (300, 40))])
     grid = visual_hull_grid(views, resolution=48, extent=0.7, tolerate=0)
     for cuts_half in (True, False):  # a V that calls the half y > 0 background / one that keeps everything
+
         def prob(model, frames, g, cuts_half=cuts_half):
             pts = g.centres()[g.occ.reshape(-1)]
             return torch.where((pts[:, 1] > 0) & cuts_half, 0.0, 1.0)

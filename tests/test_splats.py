@@ -22,8 +22,9 @@ from wgs.scene.convention import Normalisation
 
 def random_splats(n=50, deg=2, seed=0):
     g = torch.Generator().manual_seed(seed)
-    sp = create_splats(torch.randn(n, 3, generator=g), torch.rand(n, 3, generator=g),
-                       torch.rand(n, generator=g) * 0.1 + 0.01, deg)
+    sp = create_splats(
+        torch.randn(n, 3, generator=g), torch.rand(n, 3, generator=g), torch.rand(n, generator=g) * 0.1 + 0.01, deg
+    )
     sp["quats"] = torch.randn(n, 4, generator=g)
     sp["shN"] = torch.randn_like(sp["shN"])
     sp["opacities"] = torch.randn(n, generator=g)

@@ -53,14 +53,14 @@ def test_remove_split_reset_keep_adam_state_aligned():
 
 def test_strategy_grows_high_gradient_and_respects_cap():
     params, opts = params_and_opts()
-    strat = DensifyStrategy(refine_start=0, refine_every=1, max_gaussians=24, grad_threshold=1e-3,
-                            reset_every=0, prune_opacity=0.0)
+    strat = DensifyStrategy(
+        refine_start=0, refine_every=1, max_gaussians=24, grad_threshold=1e-3, reset_every=0, prune_opacity=0.0
+    )
     state = strat.initial_state()
     means2d = torch.zeros(20, 2, requires_grad=True)
     means2d.grad = torch.zeros(20, 2)
     means2d.grad[:10] = 1.0  # ten with a high gradient
-    strat.accumulate(state, {"means2d": means2d, "visible": torch.ones(20, dtype=torch.bool), "width": 8,
-                             "height": 8})
+    strat.accumulate(state, {"means2d": means2d, "visible": torch.ones(20, dtype=torch.bool), "width": 8, "height": 8})
     out = strat.step(params, opts, state, 1)
     assert out["cloned"] + out["split"] > 0
     assert params["means"].shape[0] <= 24

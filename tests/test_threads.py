@@ -13,20 +13,23 @@ import pytest
 from wgs import threads
 from wgs.errors import WgsError
 
-PROBE = ("import json, wgs.threads as t, numba, numpy as np\n"
-         "@numba.njit(parallel=True)\n"
-         "def f(x):\n"
-         "    s = 0.0\n"
-         "    for i in numba.prange(x.shape[0]):\n"
-         "        s += x[i]\n"
-         "    return s\n"
-         "t.configure(None); f(np.ones(100)); print(json.dumps(t.describe()))")
+PROBE = (
+    "import json, wgs.threads as t, numba, numpy as np\n"
+    "@numba.njit(parallel=True)\n"
+    "def f(x):\n"
+    "    s = 0.0\n"
+    "    for i in numba.prange(x.shape[0]):\n"
+    "        s += x[i]\n"
+    "    return s\n"
+    "t.configure(None); f(np.ones(100)); print(json.dumps(t.describe()))"
+)
 
 
 def probe(env: dict[str, str]) -> dict:
     clean = {k: v for k, v in os.environ.items() if k not in (*threads.COUNT_VARS, threads.ENV)}
-    out = subprocess.run([sys.executable, "-c", PROBE], env={**clean, **env}, capture_output=True, text=True,
-                         check=True)
+    out = subprocess.run(
+        [sys.executable, "-c", PROBE], env={**clean, **env}, capture_output=True, text=True, check=True
+    )
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
@@ -113,8 +116,9 @@ def test_cgroup_quota(tmp_path):
 def test_cli_threads_option(tmp_path):
     ws = tmp_path / "ws"
     ws.mkdir()
-    out = subprocess.run([sys.executable, "-m", "wgs", "--threads", "1", "-w", str(ws), "info"],
-                         capture_output=True, text=True)
+    out = subprocess.run(
+        [sys.executable, "-m", "wgs", "--threads", "1", "-w", str(ws), "info"], capture_output=True, text=True
+    )
     assert out.returncode == 0, out.stderr
     assert "threads: torch 1, numba 1" in out.stdout and "fixed" in out.stdout
 
@@ -156,10 +160,17 @@ def test_children_leave_when_their_parent_is_killed():
     import signal
     import time
 
-    parent = subprocess.Popen([sys.executable, "-c", "import time, wgs.threads as t\n"
-                               "print('go', flush=True)\n"
-                               "dict(t.map_in_processes(time.sleep, [(60,), (60,)], 2))"],
-                              stdout=subprocess.PIPE, text=True)
+    parent = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import time, wgs.threads as t\n"
+            "print('go', flush=True)\n"
+            "dict(t.map_in_processes(time.sleep, [(60,), (60,)], 2))",
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     assert parent.stdout.readline().strip() == "go"
     deadline = time.monotonic() + 60
     while len(kids := children_of(parent.pid)) < 2 and time.monotonic() < deadline:

@@ -14,8 +14,9 @@ SPLAT = np.dtype([("pos", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4), ("r
 
 
 def random_rotations(n, seed=0):
-    q = torch.nn.functional.normalize(torch.randn(n, 4, generator=torch.Generator().manual_seed(seed),
-                                                  dtype=torch.float64), dim=-1)
+    q = torch.nn.functional.normalize(
+        torch.randn(n, 4, generator=torch.Generator().manual_seed(seed), dtype=torch.float64), dim=-1
+    )
     return quat_to_rotmat(q)
 
 
@@ -36,11 +37,14 @@ def test_quat_multiply_composes_rotations():
 
 
 def tiny_splats():
-    return {"means": torch.tensor([[0.0, 0.0, 0.0], [1.0, 2.0, 3.0]]),
-            "quats": torch.tensor([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 2.0]]),
-            "scales": torch.log(torch.tensor([[0.1, 0.1, 0.1], [0.5, 0.2, 0.1]])),
-            "opacities": torch.tensor([0.0, 10.0]),
-            "sh0": torch.zeros(2, 1, 3), "shN": torch.zeros(2, 3, 3)}
+    return {
+        "means": torch.tensor([[0.0, 0.0, 0.0], [1.0, 2.0, 3.0]]),
+        "quats": torch.tensor([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 2.0]]),
+        "scales": torch.log(torch.tensor([[0.1, 0.1, 0.1], [0.5, 0.2, 0.1]])),
+        "opacities": torch.tensor([0.0, 10.0]),
+        "sh0": torch.zeros(2, 1, 3),
+        "shN": torch.zeros(2, 3, 3),
+    }
 
 
 def test_splat_layout():

@@ -38,25 +38,41 @@ class Row:
 
     def overrides(self) -> dict[str, dict[str, Any]]:
         """The row's settings, per config table."""
-        return {"mask_data": {"strategy": self.strategy},
-                "finetune": {"domain": self.domain, "use_u": self.use_u, "levels": self.levels, "prior": self.prior},
-                "repair": {"carve": self.carve, "shape_revolution": self.own_shape, "shape_smooth": self.own_shape}}
+        return {
+            "mask_data": {"strategy": self.strategy},
+            "finetune": {"domain": self.domain, "use_u": self.use_u, "levels": self.levels, "prior": self.prior},
+            "repair": {"carve": self.carve, "shape_revolution": self.own_shape, "shape_smooth": self.own_shape},
+        }
 
 
-ROWS: dict[str, Row] = {r.name: r for r in (
-    Row("loo-rgb", "loo", "rgb"),
-    Row("offline-rgb", "offline-rm", "rgb"),
-    Row("orm-rgb", "orm", "rgb"),
-    Row("orm-wavelet", "orm", "wavelet"),
-    Row("orm-wavelet-u", "orm", "wavelet", use_u=True),
-    Row("orm-wavelet-u-prior", "orm", "wavelet", use_u=True, prior="builtin"),
-    Row("orm-wavelet-u-prior-carve", "orm", "wavelet", use_u=True, prior="builtin", carve=True),
-    Row("orm-wavelet-u-prior-carve-shape", "orm", "wavelet", use_u=True, prior="builtin", carve=True, own_shape=True),
-    Row("3dgs", None),
-    Row("orm-wavelet-u-j2", "orm", "wavelet", use_u=True, levels=2),
-)}
-PAPER_ROWS = ("loo-rgb", "offline-rgb", "orm-rgb", "orm-wavelet", "orm-wavelet-u", "orm-wavelet-u-prior",
-              "orm-wavelet-u-prior-carve", "orm-wavelet-u-prior-carve-shape", "3dgs")
+ROWS: dict[str, Row] = {
+    r.name: r
+    for r in (
+        Row("loo-rgb", "loo", "rgb"),
+        Row("offline-rgb", "offline-rm", "rgb"),
+        Row("orm-rgb", "orm", "rgb"),
+        Row("orm-wavelet", "orm", "wavelet"),
+        Row("orm-wavelet-u", "orm", "wavelet", use_u=True),
+        Row("orm-wavelet-u-prior", "orm", "wavelet", use_u=True, prior="builtin"),
+        Row("orm-wavelet-u-prior-carve", "orm", "wavelet", use_u=True, prior="builtin", carve=True),
+        Row(
+            "orm-wavelet-u-prior-carve-shape", "orm", "wavelet", use_u=True, prior="builtin", carve=True, own_shape=True
+        ),
+        Row("3dgs", None),
+        Row("orm-wavelet-u-j2", "orm", "wavelet", use_u=True, levels=2),
+    )
+}
+PAPER_ROWS = (
+    "loo-rgb",
+    "offline-rgb",
+    "orm-rgb",
+    "orm-wavelet",
+    "orm-wavelet-u",
+    "orm-wavelet-u-prior",
+    "orm-wavelet-u-prior-carve",
+    "orm-wavelet-u-prior-carve-shape",
+    "3dgs",
+)
 TIME_OF = "orm-wavelet-u-prior"  # plain 3DGS gets the time of the full method (wgs all's default)
 # a row's own stages (what runs only on request, the plain-3DGS baseline, is its own row)
 AFTER_PAIRS = tuple(s.name for s in REGISTRY if s.name not in stages_through("mask_data") and not s.on_request)
@@ -80,7 +96,7 @@ def copy_stages(src: Workspace, dst: Workspace, stages: tuple[str, ...]) -> None
         s, d = src.stage_dir(st), dst.stage_dir(st)
         if src.manifest(st) is None:
             raise InputError(f"shared stage {st} is missing", s)
-        if d.exists() and (dst.manifest(st) or {}).get("fingerprint") == src.manifest(st)["fingerprint"]:
+        if d.exists() and (dst.manifest(st) or {}).get("fingerprint") == src.finished(st)["fingerprint"]:
             continue
         shutil.rmtree(d, ignore_errors=True)
         shutil.copytree(s, d)
@@ -90,8 +106,15 @@ def row_times(ws: Workspace) -> dict[str, float]:
     return {st: (ws.manifest(st) or {}).get("wall_time_s", 0.0) for st in METHOD if ws.manifest(st)}
 
 
-def run_ablation(ctx, scene_dir: Path, root: Path, rows: list[Row], repeats: int, preset: str | None,
-                 prepare_overrides: dict[str, Any]) -> list[dict[str, Any]]:
+def run_ablation(
+    ctx,
+    scene_dir: Path,
+    root: Path,
+    rows: list[Row],
+    repeats: int,
+    preset: str | None,
+    prepare_overrides: dict[str, Any],
+) -> list[dict[str, Any]]:
     from .estimate import RunTiming
     from .stages import run_stage
 
@@ -122,13 +145,16 @@ def run_ablation(ctx, scene_dir: Path, root: Path, rows: list[Row], repeats: int
             if row.strategy is None:
                 copy_stages(shared, ws, ("scene",))
                 budget = sum(t for st, t in timings[TIME_OF].items() if st != "scene")
-                coarse_s = shared.manifest("coarse")["train_seconds"]
-                cfg = plain_3dgs_config(ctx.config("coarse", preset), budget, coarse_s,
-                                        ctx.config("baseline", preset).headroom)
+                coarse_s = shared.finished("coarse")["train_seconds"]
+                cfg = plain_3dgs_config(
+                    ctx.config("coarse", preset), budget, coarse_s, ctx.config("baseline", preset).headroom
+                )
                 run_stage("coarse", ws, cfg, env)
                 run(ws, ("eval",), {}, dataclasses.replace(env, final="coarse"))
-                timings[row.name] = {"scene": ws.manifest("scene")["wall_time_s"],
-                                     "coarse": ws.manifest("coarse")["wall_time_s"]}
+                timings[row.name] = {
+                    "scene": ws.finished("scene")["wall_time_s"],
+                    "coarse": ws.finished("coarse")["wall_time_s"],
+                }
             else:
                 if row.strategy not in masks:
                     mws = workspace(f"_mask_{row.strategy}")
@@ -139,13 +165,21 @@ def run_ablation(ctx, scene_dir: Path, root: Path, rows: list[Row], repeats: int
                 run(ws, AFTER_PAIRS, row.overrides())
                 timings[row.name] = row_times(ws)
             res = read_json(ws.output("eval", "results"))
-            records.append({"row": row.name, "repeat": rep, "seed": seed, "psnr": res["psnr"], "ssim": res["ssim"],
-                            "lpips": res["lpips"],
-                            "repair_gain_db": (res.get("repair_gain") or {}).get("gain_db"),
-                            # U trained but left out where it did not beat no HF repair on held-out crops
-                            "u_used": (ws.manifest("finetune") or {}).get("u_used") if row.use_u else None,
-                            "time_s": round(sum(timings[row.name].values()), 2),
-                            "stage_times_s": timings[row.name]})
+            records.append(
+                {
+                    "row": row.name,
+                    "repeat": rep,
+                    "seed": seed,
+                    "psnr": res["psnr"],
+                    "ssim": res["ssim"],
+                    "lpips": res["lpips"],
+                    "repair_gain_db": (res.get("repair_gain") or {}).get("gain_db"),
+                    # U trained but left out where it did not beat no HF repair on held-out crops
+                    "u_used": (ws.manifest("finetune") or {}).get("u_used") if row.use_u else None,
+                    "time_s": round(sum(timings[row.name].values()), 2),
+                    "stage_times_s": timings[row.name],
+                }
+            )
     return records
 
 
@@ -154,10 +188,16 @@ def aggregate(records: list[dict[str, Any]], rows: list[Row]) -> list[dict[str, 
     for row in rows:
         rs = [r for r in records if r["row"] == row.name]
         repair = row.strategy is not None
-        agg: dict[str, Any] = {"row": row.name, "strategy": row.strategy, "domain": row.domain if repair else None,
-                               "use_u": row.use_u, "levels": row.levels if repair else None,
-                               "prior": row.prior if repair else None, "repeats": len(rs),
-                               "u_kept": sum(bool(r.get("u_used")) for r in rs) if row.use_u and repair else None}
+        agg: dict[str, Any] = {
+            "row": row.name,
+            "strategy": row.strategy,
+            "domain": row.domain if repair else None,
+            "use_u": row.use_u,
+            "levels": row.levels if repair else None,
+            "prior": row.prior if repair else None,
+            "repeats": len(rs),
+            "u_kept": sum(bool(r.get("u_used")) for r in rs) if row.use_u and repair else None,
+        }
         for k in ("psnr", "ssim", "lpips", "time_s", "repair_gain_db"):
             vals = [r[k] for r in rs if r.get(k) is not None]
             agg[k] = statistics.fmean(vals) if vals else None
@@ -180,9 +220,14 @@ def pareto(rows: list[dict[str, Any]]) -> set[str]:
     for a in rows:
         if a["psnr"] is None:
             continue
-        dominated = any(b is not a and b["psnr"] is not None and b["time_s"] <= a["time_s"]
-                        and b["psnr"] >= a["psnr"] and (b["time_s"] < a["time_s"] or b["psnr"] > a["psnr"])
-                        for b in rows)
+        dominated = any(
+            b is not a
+            and b["psnr"] is not None
+            and b["time_s"] <= a["time_s"]
+            and b["psnr"] >= a["psnr"]
+            and (b["time_s"] < a["time_s"] or b["psnr"] > a["psnr"])
+            for b in rows
+        )
         if not dominated:
             front.add(a["row"])
     return front
@@ -194,33 +239,68 @@ def write_outputs(root: Path, agg: list[dict[str, Any]], records: list[dict[str,
 
     tick = {True: "✓", False: ""}
     stages = [s for s in STAGE_DIRS if s != "eval" and any(s in r["stage_times_s"] for r in agg)]
-    lines = ["# wgs ablation (Table 2 of WaveletGaussian)", "",
-             "| row | LOO | offline RM | online RM | wavelet D | U | prior | PSNR | SSIM | LPIPS | repair gain (dB) | "
-             "time (s) | " + " | ".join(f"{s} (s)" for s in stages) + " |",
-             "| --- | :-: | :-: | :-: | :-: | :-: | :-: | ---: | ---: | ---: | ---: | ---: | "
-             + " | ".join("---:" for _ in stages) + " |"]
+    lines = [
+        "# wgs ablation (Table 2 of WaveletGaussian)",
+        "",
+        "| row | LOO | offline RM | online RM | wavelet D | U | prior | PSNR | SSIM | LPIPS | repair gain (dB) | "
+        "time (s) | " + " | ".join(f"{s} (s)" for s in stages) + " |",
+        "| --- | :-: | :-: | :-: | :-: | :-: | :-: | ---: | ---: | ---: | ---: | ---: | "
+        + " | ".join("---:" for _ in stages)
+        + " |",
+    ]
     for r in agg:
         st = r["strategy"]
-        cells = [tick[st == "loo"], tick[st == "offline-rm"], tick[st == "orm"],
-                 tick[r["domain"] == "wavelet"] + (f" J={r['levels']}" if (r["levels"] or 1) > 1 else ""),
-                 tick[bool(r["use_u"]) and st is not None] + u_note(r), tick[r.get("prior") not in (None, "none")]]
-        lines.append(f"| {r['row']} | " + " | ".join(cells) + f" | {pm(r, 'psnr', 2)} | {pm(r, 'ssim', 3)} | "
-                     f"{pm(r, 'lpips', 3)} | {pm(r, 'repair_gain_db', 2)} | {pm(r, 'time_s', 1)} | "
-                     + " | ".join(fmt(r["stage_times_s"].get(s), 1) for s in stages) + " |")
+        cells = [
+            tick[st == "loo"],
+            tick[st == "offline-rm"],
+            tick[st == "orm"],
+            tick[r["domain"] == "wavelet"] + (f" J={r['levels']}" if (r["levels"] or 1) > 1 else ""),
+            tick[bool(r["use_u"]) and st is not None] + u_note(r),
+            tick[r.get("prior") not in (None, "none")],
+        ]
+        lines.append(
+            f"| {r['row']} | " + " | ".join(cells) + f" | {pm(r, 'psnr', 2)} | {pm(r, 'ssim', 3)} | "
+            f"{pm(r, 'lpips', 3)} | {pm(r, 'repair_gain_db', 2)} | {pm(r, 'time_s', 1)} | "
+            + " | ".join(fmt(r["stage_times_s"].get(s), 1) for s in stages)
+            + " |"
+        )
     by = {r["row"]: r for r in agg}
     if "loo-rgb" in by and "orm-wavelet-u" in by:
         a, b = by["orm-wavelet-u"], by["loo-rgb"]
-        lines += ["", f"time(orm-wavelet-u) / time(loo-rgb) = {a['time_s'] / b['time_s']:.2f}; "
-                      f"PSNR difference {a['psnr'] - b['psnr']:+.2f} dB"]
+        lines += [
+            "",
+            f"time(orm-wavelet-u) / time(loo-rgb) = {a['time_s'] / b['time_s']:.2f}; "
+            f"PSNR difference {a['psnr'] - b['psnr']:+.2f} dB",
+        ]
     for name in ("orm-wavelet-u", "3dgs"):
         if "orm-wavelet-u-prior" in by and name in by:
             a, b = by["orm-wavelet-u-prior"], by[name]
-            lines += ["", f"PSNR(orm-wavelet-u-prior) - PSNR({name}) = {a['psnr'] - b['psnr']:+.2f} dB "
-                          f"(times {a['time_s']:.0f} s and {b['time_s']:.0f} s)"]
+            lines += [
+                "",
+                f"PSNR(orm-wavelet-u-prior) - PSNR({name}) = {a['psnr'] - b['psnr']:+.2f} dB "
+                f"(times {a['time_s']:.0f} s and {b['time_s']:.0f} s)",
+            ]
     atomic_write_bytes(root / "ablation.md", ("\n".join(lines) + "\n").encode())
     buf = io.StringIO()
-    cols = ["row", "strategy", "domain", "use_u", "levels", "prior", "repeats", "psnr", "psnr_std", "ssim", "ssim_std",
-            "lpips", "lpips_std", "repair_gain_db", "repair_gain_db_std", "time_s", "time_s_std"]
+    cols = [
+        "row",
+        "strategy",
+        "domain",
+        "use_u",
+        "levels",
+        "prior",
+        "repeats",
+        "psnr",
+        "psnr_std",
+        "ssim",
+        "ssim_std",
+        "lpips",
+        "lpips_std",
+        "repair_gain_db",
+        "repair_gain_db_std",
+        "time_s",
+        "time_s_std",
+    ]
     w = csv.writer(buf)
     w.writerow(cols + [f"{s}_s" for s in stages])
     for r in agg:
@@ -242,8 +322,14 @@ def plot(path: Path, agg: list[dict[str, Any]]) -> None:
     for ax, key, better in zip(axes[0], ("psnr", "lpips"), ("higher", "lower"), strict=False):
         pts = [r for r in agg if r[key] is not None]
         for r in pts:
-            ax.errorbar(r["time_s"], r[key], xerr=r["time_s_std"] or 0, yerr=r[f"{key}_std"] or 0,
-                        fmt="o", color="tab:red" if r["row"] in front else "tab:blue")
+            ax.errorbar(
+                r["time_s"],
+                r[key],
+                xerr=r["time_s_std"] or 0,
+                yerr=r[f"{key}_std"] or 0,
+                fmt="o",
+                color="tab:red" if r["row"] in front else "tab:blue",
+            )
             ax.annotate(r["row"], (r["time_s"], r[key]), textcoords="offset points", xytext=(4, 4), fontsize=7)
         fr = sorted((r for r in pts if r["row"] in front), key=lambda r: r["time_s"])
         if key == "psnr" and fr:

@@ -77,14 +77,16 @@ def read_scene_list(spec: str, all_command: click.Command) -> list[SceneTask]:
     seen: dict[str, str] = {}
     for t in tasks:
         if t.name in seen:
-            raise InputError(f"two scenes are named {t.name!r} ({seen[t.name]} and {t.scene}): their workspaces "
-                             "would collide; rename one folder or list it under another parent", spec)
+            raise InputError(
+                f"two scenes are named {t.name!r} ({seen[t.name]} and {t.scene}): their workspaces "
+                "would collide; rename one folder or list it under another parent",
+                spec,
+            )
         seen[t.name] = t.scene
     return tasks
 
 
-def make_task(scene: Path, options: list[str], all_command: click.Command, where: str, source: str | Path
-              ) -> SceneTask:
+def make_task(scene: Path, options: list[str], all_command: click.Command, where: str, source: str | Path) -> SceneTask:
     if not scene.is_dir():
         raise InputError(f"{where}scene folder not found: {scene}", source)
     if any(o in ("-w", "--workspace") or o.startswith("--workspace=") for o in options):
@@ -116,8 +118,9 @@ def shard_from_env(rank: int | None, world_size: int | None) -> tuple[int, int]:
 
 
 # ----------------------------------------------------------------------------- one scene
-def run_scene(task: SceneTask, root: str, global_args: list[str], env: dict[str, str] | None = None,
-              rerun: bool = False) -> dict[str, Any]:
+def run_scene(
+    task: SceneTask, root: str, global_args: list[str], env: dict[str, str] | None = None, rerun: bool = False
+) -> dict[str, Any]:
     """`wgs all` on one scene in a child process (a crash or a GPU fault stays there). Writes
     ROOT/<name>/error.txt on failure, ROOT/<name>/batch_done.json on success; a scene finished with
     the same arguments is skipped unless `rerun`."""
@@ -125,16 +128,16 @@ def run_scene(task: SceneTask, root: str, global_args: list[str], env: dict[str,
     args = [*global_args, "-w", str(ws), "all", task.scene, *task.options]
     key = {"args": [*global_args, "all", task.scene, *task.options]}
     done = ws / DONE
-    if (not rerun and done.is_file() and _read(done) == key
-            and Workspace(ws).output("eval", "results").is_file()):
+    if not rerun and done.is_file() and _read(done) == key and Workspace(ws).output("eval", "results").is_file():
         return {"name": task.name, "status": "skipped", "seconds": 0.0, "error": None}
     logs = Path(root) / BATCH_DIR / "logs"
     logs.mkdir(parents=True, exist_ok=True)
     ws.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     with open(logs / f"{task.name}.log", "w", encoding="utf-8") as fh:
-        proc = subprocess.run([sys.executable, "-m", "wgs", *args], stdout=fh, stderr=subprocess.STDOUT,
-                              env={**os.environ, **(env or {})})
+        proc = subprocess.run(
+            [sys.executable, "-m", "wgs", *args], stdout=fh, stderr=subprocess.STDOUT, env={**os.environ, **(env or {})}
+        )
     seconds = time.perf_counter() - t0
     if proc.returncode == 0:
         (ws / ERROR).unlink(missing_ok=True)
@@ -142,8 +145,13 @@ def run_scene(task: SceneTask, root: str, global_args: list[str], env: dict[str,
         return {"name": task.name, "status": "done", "seconds": round(seconds, 2), "error": None}
     message = failure_message(logs / f"{task.name}.log", proc.returncode)
     done.unlink(missing_ok=True)
-    atomic_write_bytes(ws / ERROR, (f"{message}\nexit status {proc.returncode}; command: wgs "
-                                    f"{shlex.join(args)}\nfull log: {logs / (task.name + '.log')}\n").encode())
+    atomic_write_bytes(
+        ws / ERROR,
+        (
+            f"{message}\nexit status {proc.returncode}; command: wgs "
+            f"{shlex.join(args)}\nfull log: {logs / (task.name + '.log')}\n"
+        ).encode(),
+    )
     return {"name": task.name, "status": "failed", "seconds": round(seconds, 2), "error": message}
 
 
@@ -179,8 +187,9 @@ def visible_gpus() -> list[str]:
         return []
 
 
-def run_local(tasks: list[SceneTask], root: Path, global_args: list[str], jobs: int | None, use_gpus: bool,
-              rerun: bool = False) -> list[dict[str, Any]]:
+def run_local(
+    tasks: list[SceneTask], root: Path, global_args: list[str], jobs: int | None, use_gpus: bool, rerun: bool = False
+) -> list[dict[str, Any]]:
     """A pool of child processes: one per visible GPU (CUDA_VISIBLE_DEVICES set per child), else `jobs`
     on the CPU with the cores shared out (WGS_THREADS per child, see threads.py)."""
     gpus = visible_gpus() if use_gpus else []
@@ -205,9 +214,11 @@ def run_local(tasks: list[SceneTask], root: Path, global_args: list[str], jobs: 
             res = run_scene(task, str(root), global_args, env, rerun)
         finally:
             slots.put(env)
-        log(f"batch: [{i + 1}/{len(tasks)}] {task.name}: {res['status']}"
+        log(
+            f"batch: [{i + 1}/{len(tasks)}] {task.name}: {res['status']}"
             + (f" in {res['seconds']:.0f} s" if res["status"] != "skipped" else "")
-            + (f" ({res['error']})" if res["error"] else ""))
+            + (f" ({res['error']})" if res["error"] else "")
+        )
         return res
 
     with ThreadPoolExecutor(max_workers=n) as pool:
@@ -225,8 +236,9 @@ class SlurmOptions:
     array_parallelism: int = 32
 
 
-def run_submitit(tasks: list[SceneTask], root: Path, global_args: list[str], opts: SlurmOptions,
-                 rerun: bool = False) -> list[dict[str, Any]]:
+def run_submitit(
+    tasks: list[SceneTask], root: Path, global_args: list[str], opts: SlurmOptions, rerun: bool = False
+) -> list[dict[str, Any]]:
     """One job-array element per scene; logs in ROOT/_batch/logs/<job id>/. Waits for the results."""
     try:
         import submitit
@@ -234,9 +246,15 @@ def run_submitit(tasks: list[SceneTask], root: Path, global_args: list[str], opt
         raise InputError("--executor slurm needs submitit: pip install 'wgs[slurm]'") from None
     folder = root / BATCH_DIR / "logs" / "%j"
     executor = submitit.AutoExecutor(folder=folder, cluster=opts.cluster)
-    executor.update_parameters(timeout_min=opts.time_min, gpus_per_node=opts.gpus or None, cpus_per_task=opts.cpus,
-                               mem_gb=opts.mem_gb, name="wgs-batch", slurm_partition=opts.partition,
-                               slurm_array_parallelism=opts.array_parallelism)
+    executor.update_parameters(
+        timeout_min=opts.time_min,
+        gpus_per_node=opts.gpus or None,
+        cpus_per_task=opts.cpus,
+        mem_gb=opts.mem_gb,
+        name="wgs-batch",
+        slurm_partition=opts.partition,
+        slurm_array_parallelism=opts.array_parallelism,
+    )
     n = len(tasks)
     jobs = executor.map_array(run_scene, tasks, [str(root)] * n, [global_args] * n, [None] * n, [rerun] * n)
     log(f"batch: submitted {n} job(s) to {executor.cluster} (first id {jobs[0].job_id if jobs else '-'})")
@@ -277,8 +295,8 @@ def summarize(root: Path, tasks: list[SceneTask], ran: dict[str, dict[str, Any]]
     stages = sorted({s for r in done for s in r["stage_times_s"]})
     mean, std = {}, {}
     for k in keys + [f"time_{s}" for s in stages]:
-        vals = [(r["stage_times_s"].get(k[5:]) if k.startswith("time_") else r.get(k)) for r in done]
-        vals = [v for v in vals if isinstance(v, int | float)]
+        found = [(r["stage_times_s"].get(k[5:]) if k.startswith("time_") else r.get(k)) for r in done]
+        vals = [float(v) for v in found if isinstance(v, int | float)]
         mean[k] = statistics.fmean(vals) if vals else None
         std[k] = statistics.pstdev(vals) if len(vals) > 1 else (0.0 if vals else None)
     counts = {s: sum(r["status"] == s for r in rows) for s in ("done", "failed", "not run")}
@@ -288,14 +306,20 @@ def summarize(root: Path, tasks: list[SceneTask], ran: dict[str, dict[str, Any]]
 def write_summary(root: Path, summary: dict[str, Any]) -> None:
     out = root / BATCH_DIR
     atomic_write_json(out / "summary.json", summary)
-    cols = ["scene", "status", *METRICS, *(f"coarse_{m}" for m in METRICS), "total_time_s",
-            *(f"time_{s}" for s in summary["stages"]), "error"]
+    cols = [
+        "scene",
+        "status",
+        *METRICS,
+        *(f"coarse_{m}" for m in METRICS),
+        "total_time_s",
+        *(f"time_{s}" for s in summary["stages"]),
+        "error",
+    ]
     buf = io.StringIO()
     w = csv.writer(buf)
     w.writerow(cols)
     for r in summary["scenes"]:
-        w.writerow([r.get(c) if not c.startswith("time_") else (r.get("stage_times_s") or {}).get(c[5:])
-                    for c in cols])
+        w.writerow([r.get(c) if not c.startswith("time_") else (r.get("stage_times_s") or {}).get(c[5:]) for c in cols])
     for label in ("mean", "std"):
         w.writerow([label, "", *(summary[label].get(c) for c in cols[2:-1]), ""])
     atomic_write_bytes(out / "summary.csv", buf.getvalue().encode())
@@ -308,8 +332,13 @@ def print_summary(summary: dict[str, Any]) -> None:
 
     rows, m, sd = summary["scenes"], summary["mean"], summary["std"]
     # (header, row key, decimals); LPIPS and error columns only when some scene has them
-    cols = [("PSNR", "psnr", 2), ("SSIM", "ssim", 3), ("LPIPS", "lpips", 3), ("PSNR G_c", "coarse_psnr", 2),
-            ("time (s)", "total_time_s", 1)]
+    cols = [
+        ("PSNR", "psnr", 2),
+        ("SSIM", "ssim", 3),
+        ("LPIPS", "lpips", 3),
+        ("PSNR G_c", "coarse_psnr", 2),
+        ("time (s)", "total_time_s", 1),
+    ]
     cols = [c for c in cols if c[1] != "lpips" or any(r.get("lpips") is not None for r in rows)]
     with_errors = any(r["error"] for r in rows)
     table = Table(title=f"wgs batch: {summary['root']}")
@@ -318,10 +347,16 @@ def print_summary(summary: dict[str, Any]) -> None:
         table.add_column(c, overflow="fold")
     for r in rows:
         status = r["status"] + (f" ({r['this_run']})" if r.get("this_run") == "skipped" else "")
-        table.add_row(r["scene"], status, *(fmt(r.get(k), nd, missing="") for _, k, nd in cols),
-                      *([(r["error"] or "")[:120]] if with_errors else []))
-    table.add_row("mean ± std", f"{summary['counts']['done']} done",
-                  *(f"{fmt(m[k], nd, '')} ± {fmt(sd[k], nd, '')}" if m.get(k) is not None else "" for _, k, nd in cols),
-                  *([""] if with_errors else []))
+        table.add_row(
+            r["scene"],
+            status,
+            *(fmt(r.get(k), nd, missing="") for _, k, nd in cols),
+            *([(r["error"] or "")[:120]] if with_errors else []),
+        )
+    table.add_row(
+        "mean ± std",
+        f"{summary['counts']['done']} done",
+        *(f"{fmt(m[k], nd, '')} ± {fmt(sd[k], nd, '')}" if m.get(k) is not None else "" for _, k, nd in cols),
+        *([""] if with_errors else []),
+    )
     results.print(table)
-

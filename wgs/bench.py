@@ -33,13 +33,21 @@ def bench_rasterizer(repeats: int, ref_repeats: int) -> dict:
     for size, n in CASES:
         fast = time_backend("numba", size, n, repeats)
         ref = time_backend("torch", size, n, ref_repeats)
-        rows.append({
-            "size": size, "gaussians": n, "numba": fast, "torch_reference": ref,
-            "speedup_forward_backward": ref["forward_backward"]["median_s"] / fast["forward_backward"]["median_s"],
-        })
-    return {"benchmark": "rasterizer", "machine": {"platform": platform.platform(), "cpus": torch.get_num_threads(),
-                                                    "torch": torch.__version__}, "cases": rows,
-            "peak_memory_mb": peak_memory_mb()}
+        rows.append(
+            {
+                "size": size,
+                "gaussians": n,
+                "numba": fast,
+                "torch_reference": ref,
+                "speedup_forward_backward": ref["forward_backward"]["median_s"] / fast["forward_backward"]["median_s"],
+            }
+        )
+    return {
+        "benchmark": "rasterizer",
+        "machine": {"platform": platform.platform(), "cpus": torch.get_num_threads(), "torch": torch.__version__},
+        "cases": rows,
+        "peak_memory_mb": peak_memory_mb(),
+    }
 
 
 def wgs_cli(*args: str) -> float:
@@ -68,20 +76,40 @@ def bench_pipeline(scene: str, root: str, preset: str, views: int, downscale: in
     for d in (STAGE_DIRS["scene"], STAGE_DIRS["coarse"]):
         shutil.copytree(ws / d, ws_loo / d)
     wgs_cli("-w", str(ws_loo), "mask-data", "--strategy", "loo", *pre)
-    orm = Workspace(ws).manifest("mask_data")
-    loo = Workspace(ws_loo).manifest("mask_data")
-    ft = Workspace(ws).manifest("finetune")
+    orm = Workspace(ws).finished("mask_data")
+    loo = Workspace(ws_loo).finished("mask_data")
+    ft = Workspace(ws).finished("finetune")
     pick = ("psnr", "psnr_std", "ssim", "ssim_std", "lpips", "lpips_std", "num_gaussians", "num_views")
     return {
-        "benchmark": "pipeline", "scene": scene, "preset": preset, "views": views, "downscale": downscale,
-        "wgs_all_wall_s": t_all, "stage_times_s": res["stage_times_s"],
-        "coarse": {k: res["coarse"].get(k) for k in pick}, "fine": {k: res.get(k) for k in pick},
+        "benchmark": "pipeline",
+        "scene": scene,
+        "preset": preset,
+        "views": views,
+        "downscale": downscale,
+        "wgs_all_wall_s": t_all,
+        "stage_times_s": res["stage_times_s"],
+        "coarse": {k: res["coarse"].get(k) for k in pick},
+        "fine": {k: res.get(k) for k in pick},
         "plain_3dgs": {**{k: res_3dgs.get(k) for k in pick}, "wall_s": t_3dgs},
-        "mask_data": {"orm_s": orm["strategy_seconds"], "loo_s": loo["strategy_seconds"],
-                      "ratio_orm_over_loo": orm["strategy_seconds"] / loo["strategy_seconds"],
-                      "orm_pairs": orm["num_pairs"], "loo_pairs": loo["num_pairs"]},
-        "finetune": {k: ft.get(k) for k in ("d_seconds", "d_final_loss", "u_seconds", "u_best_val",
-                                            "u_identity_val", "u_stopped_at", "heldout")},
+        "mask_data": {
+            "orm_s": orm["strategy_seconds"],
+            "loo_s": loo["strategy_seconds"],
+            "ratio_orm_over_loo": orm["strategy_seconds"] / loo["strategy_seconds"],
+            "orm_pairs": orm["num_pairs"],
+            "loo_pairs": loo["num_pairs"],
+        },
+        "finetune": {
+            k: ft.get(k)
+            for k in (
+                "d_seconds",
+                "d_final_loss",
+                "u_seconds",
+                "u_best_val",
+                "u_identity_val",
+                "u_stopped_at",
+                "heldout",
+            )
+        },
         "machine": {"platform": platform.platform(), "threads": torch.get_num_threads()},
     }
 
@@ -100,18 +128,40 @@ def bench_batch(root: str, preset: str, seeds: tuple[int, ...] = (0, 1, 2), jobs
     walls = {}
     for n in (jobs, 1):
         t0 = time.perf_counter()
-        subprocess.run([sys.executable, "-m", "wgs", "batch", str(base / "scenes.txt"), "-o", str(base / f"jobs{n}"),
-                        "--jobs", str(n), "--preset", preset], check=True)
+        subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "wgs",
+                "batch",
+                str(base / "scenes.txt"),
+                "-o",
+                str(base / f"jobs{n}"),
+                "--jobs",
+                str(n),
+                "--preset",
+                preset,
+            ],
+            check=True,
+        )
         walls[n] = time.perf_counter() - t0
     summary = json.loads((base / f"jobs{jobs}" / "_batch" / "summary.json").read_text())
-    return {"benchmark": "batch", "preset": preset, "scenes": len(seeds), "jobs": jobs,
-            "wall_s": {f"jobs{n}": round(w, 1) for n, w in walls.items()},
-            "speedup": walls[1] / walls[jobs], "mean": summary["mean"], "std": summary["std"],
-            "machine": {"platform": platform.platform(), "cpus": os.cpu_count()}}
+    return {
+        "benchmark": "batch",
+        "preset": preset,
+        "scenes": len(seeds),
+        "jobs": jobs,
+        "wall_s": {f"jobs{n}": round(w, 1) for n, w in walls.items()},
+        "speedup": walls[1] / walls[jobs],
+        "mean": summary["mean"],
+        "std": summary["std"],
+        "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
+    }
 
 
-def timed_coarse_runs(prepared: Path, root: Path, iterations: int, copies: int, env: dict[str, str | None]
-                      ) -> list[float]:
+def timed_coarse_runs(
+    prepared: Path, root: Path, iterations: int, copies: int, env: dict[str, str | None]
+) -> list[float]:
     """`wgs coarse` for `iterations` on `copies` copies of a prepared workspace, started together;
     wall time of each. env: variables to set (None: unset) in the children."""
     cfg = root / "coarse.toml"
@@ -154,10 +204,21 @@ def bench_contention(prepared: str, root: str, iterations: int, variants: tuple[
         env = CONTENTION_VARIANTS[name]
         solo = timed_coarse_runs(Path(prepared), base, iterations, 1, env)[0]
         pair = timed_coarse_runs(Path(prepared), base, iterations, 2, env)
-        rows.append({"threads": name, "env": env, "solo_s": round(solo, 1), "pair_s": [round(w, 1) for w in pair],
-                     "slowdown": round(max(pair) / solo, 2)})
-    return {"benchmark": "contention", "iterations": iterations, "rows": rows,
-            "machine": {"platform": platform.platform(), "cpus": os.cpu_count()}}
+        rows.append(
+            {
+                "threads": name,
+                "env": env,
+                "solo_s": round(solo, 1),
+                "pair_s": [round(w, 1) for w in pair],
+                "slowdown": round(max(pair) / solo, 2),
+            }
+        )
+    return {
+        "benchmark": "contention",
+        "iterations": iterations,
+        "rows": rows,
+        "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
+    }
 
 
 def bench_knn(sizes: tuple[int, ...] = (100_000, 1_000_000), reference_up_to: int = 100_000) -> dict:
@@ -206,17 +267,28 @@ def bench_sfm(scene: str, root: str, matcher: str = "auto", max_image_size: int 
     posed = {v.name: v for v in read_colmap_scene(folder, out, folder, fmt="photos").views}
     both = [v for v in photos if v.image.name in posed]
     err = pose_errors(np.stack([posed[v.image.name].w2c for v in both]), np.stack([v.w2c for v in both]))
-    rot, cen = err["rotation_deg"], err["center"] * 100
-    return {"benchmark": "sfm", "scene": scene, "photos": len(photos), "registered": res.registered,
-            "registered_share": round(res.registered / len(photos), 3), "matcher": res.matcher,
-            "seconds": round(res.seconds, 1), "threads": thread_count(),
-            "rotation_deg": {"median": round(float(np.median(rot)), 3), "max": round(float(rot.max()), 3)},
-            "center_pct_extent": {"median": round(float(np.median(cen)), 3), "max": round(float(cen.max()), 3)},
-            "machine": {"platform": platform.platform(), "cpus": os.cpu_count()}}
+    rot, cen = np.asarray(err["rotation_deg"]), np.asarray(err["center"]) * 100
+    return {
+        "benchmark": "sfm",
+        "scene": scene,
+        "photos": len(photos),
+        "registered": res.registered,
+        "registered_share": round(res.registered / len(photos), 3),
+        "matcher": res.matcher,
+        "seconds": round(res.seconds, 1),
+        "threads": thread_count(),
+        "rotation_deg": {"median": round(float(np.median(rot)), 3), "max": round(float(rot.max()), 3)},
+        "center_pct_extent": {"median": round(float(np.median(cen)), 3), "max": round(float(cen.max()), 3)},
+        "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
+    }
 
 
-SHAPE_OBJECTS = ("common-3d-test-models-cow", "common-3d-test-models-teapot", "common-3d-test-models-rocker-arm",
-                 "common-3d-test-models-homer")
+SHAPE_OBJECTS = (
+    "common-3d-test-models-cow",
+    "common-3d-test-models-teapot",
+    "common-3d-test-models-rocker-arm",
+    "common-3d-test-models-homer",
+)
 
 
 S_THRESHOLDS = (0.1, 0.3, 0.5)
@@ -242,14 +314,14 @@ def silhouette_knowledge(ws: Workspace, thresholds: tuple[float, ...] = S_THRESH
     if shape is None or shape.silhouette_model is None or not frames:
         return {}
     gc, bg = load_checkpoint(ws.output("coarse", "model"), scene.norm, device)[0], background_for(scene)
-    iou = {"S": [], "hull": [], "coarse": []}
+    iou: dict[str, list[float]] = {"S": [], "hull": [], "coarse": []}
     excess = {t: 0 for t in thresholds}
     lost = {t: 0 for t in thresholds}
     total_excess = total_true = 0
     for f in frames:
         rgb, alpha = render_frame(gc, f, device, bg)
         prob = shape.predict(f, rgb, alpha)
-        true, hull = f.mask > 0.5, silhouette(shape.grid, f)[0]
+        true, hull = f.object_pixels, silhouette(shape.grid, f)[0]
         for k, sil in (("S", prob > 0.5), ("hull", hull), ("coarse", alpha[..., 0] > 0.5)):
             iou[k].append(silhouette_scores(sil, true)["iou"])
         total_excess += int((hull & ~true).sum())
@@ -257,9 +329,13 @@ def silhouette_knowledge(ws: Workspace, thresholds: tuple[float, ...] = S_THRESH
         for t in thresholds:
             excess[t] += int((hull & ~true & (prob < t)).sum())
             lost[t] += int((true & (prob < t)).sum())
-    return {"iou": {k: sum(v) / len(v) for k, v in iou.items()},
-            "under": {str(t): {"hull_excess": excess[t] / max(total_excess, 1), "object": lost[t] / max(total_true, 1)}
-                      for t in thresholds}}
+    return {
+        "iou": {k: sum(v) / len(v) for k, v in iou.items()},
+        "under": {
+            str(t): {"hull_excess": excess[t] / max(total_excess, 1), "object": lost[t] / max(total_true, 1)}
+            for t in thresholds
+        },
+    }
 
 
 SHAPE_RUNS = {"no-prior": ("--mirror", "none", "--no-carve"), "prior": ()}
@@ -267,8 +343,9 @@ SHAPE_RUNS = {"no-prior": ("--mirror", "none", "--no-carve"), "prior": ()}
 mirror check passes, V and S carving)."""
 
 
-def bench_shape(mirror: str, root: str, objects: tuple[str, ...], preset: str, views: int, size: int = 200,
-                n_test: int = 32) -> dict:
+def bench_shape(
+    mirror: str, root: str, objects: tuple[str, ...], preset: str, views: int, size: int = 200, n_test: int = 32
+) -> dict:
     """The shape prior on against off on meshes the silhouette model never saw: each rendered by the
     corpus code (24 photos on the upper hemisphere, `n_test` test views over the whole sphere), then
     `wgs all` once per `SHAPE_RUNS` entry. G_f's PSNR and silhouette IoU per object, the hull's
@@ -296,32 +373,56 @@ def bench_shape(mirror: str, root: str, objects: tuple[str, ...], preset: str, v
             ws = Workspace(base / name / run)
             t = wgs_cli("-w", str(ws.root), "all", str(scene), "--views", str(views), "--preset", preset, *args)
             res = json.loads(ws.output("eval", "results").read_text())
-            row[run] = {"psnr": res["psnr"], "silhouette_iou": res.get("silhouette_iou"),
-                        "coarse_psnr": res["coarse"]["psnr"], "wall_s": round(t, 1),
-                        "mirror_views": bool((json.loads(ws.output("scene", "info").read_text()).get("mirror")
-                                              or {}).get("used")),
-                        "carving": ws.manifest("repair").get("carving")}
+            row[run] = {
+                "psnr": res["psnr"],
+                "silhouette_iou": res.get("silhouette_iou"),
+                "coarse_psnr": res["coarse"]["psnr"],
+                "wall_s": round(t, 1),
+                "mirror_views": bool(
+                    (json.loads(ws.output("scene", "info").read_text()).get("mirror") or {}).get("used")
+                ),
+                "carving": ws.finished("repair").get("carving"),
+            }
             shape = res.get("shape") or {}
             row["leave_one_out_iou"] = (shape.get("leave_one_out") or {}).get("iou")
             row["hull_test_iou"] = (shape.get("hull_test") or {}).get("iou")
         row["gain_db"] = row["prior"]["psnr"] - row["no-prior"]["psnr"]
         row["s_at_test_views"] = silhouette_knowledge(Workspace(base / name / "no-prior"))
         rows.append(row)
-        print(f"shape: {name}: G_f {row['no-prior']['psnr']:.2f} -> {row['prior']['psnr']:.2f} dB, silhouette IoU "
-              f"{row['no-prior']['silhouette_iou']:.3f} -> {row['prior']['silhouette_iou']:.3f}")
+        print(
+            f"shape: {name}: G_f {row['no-prior']['psnr']:.2f} -> {row['prior']['psnr']:.2f} dB, silhouette IoU "
+            f"{row['no-prior']['silhouette_iou']:.3f} -> {row['prior']['silhouette_iou']:.3f}"
+        )
     gains = [r["gain_db"] for r in rows]
-    return {"benchmark": "shape", "preset": preset, "views": views, "size": size, "objects": rows,
-            "mean_gain_db": sum(gains) / len(gains) if gains else None,
-            "machine": {"platform": platform.platform(), "threads": torch.get_num_threads()}}
+    return {
+        "benchmark": "shape",
+        "preset": preset,
+        "views": views,
+        "size": size,
+        "objects": rows,
+        "mean_gain_db": sum(gains) / len(gains) if gains else None,
+        "machine": {"platform": platform.platform(), "threads": torch.get_num_threads()},
+    }
 
 
 PHASES = ("wgs:render", "wgs:loss", "wgs:pseudo_view", "wgs:backward", "wgs:adam", "wgs:finite_check", "wgs:densify")
-INNER = {"wgs:render": ("wgs:project", "wgs:sh", "wgs:raster"),
-         "wgs:backward": ("RasterizeNumbaBackward", "ProjectNumbaBackward")}
+INNER = {
+    "wgs:render": ("wgs:project", "wgs:sh", "wgs:raster"),
+    "wgs:backward": ("RasterizeNumbaBackward", "ProjectNumbaBackward"),
+}
 
 
-def bench_iteration(scene: str, root: str, views: int, downscale: int, window: int = 200, seed: int = 0,
-                    stage: str = "coarse", workspace: str | None = None, start: int | None = None) -> dict:
+def bench_iteration(
+    scene: str,
+    root: str,
+    views: int,
+    downscale: int,
+    window: int = 200,
+    seed: int = 0,
+    stage: str = "coarse",
+    workspace: str | None = None,
+    start: int | None = None,
+) -> dict:
     """Where a training iteration's time goes at the scene's real size, profiled (torch.profiler,
     CPU) over `window` iterations in the middle of the stage's own training with its own settings:
     G_c's (`stage` coarse, on `scene` prepared under `root`) or G_f's (`stage` fine, on `workspace`,
@@ -342,13 +443,19 @@ def bench_iteration(scene: str, root: str, views: int, downscale: int, window: i
     if stage == "fine":
         from .stages.s5_fine import fine_inputs
 
+        if workspace is None:
+            raise SystemExit("iteration --stage fine needs --workspace (a workspace after `wgs repair`)")
         ws = Workspace(Path(workspace))
         inputs = fine_inputs(ws, cfg, device, seed)
         prepared, splats, pseudo = inputs.scene, inputs.splats, inputs.pseudo(cfg)
     else:
         ws = Workspace(Path(root) / "iteration")
-        run_stage("scene", ws, resolve("prepare", cli={"views": views, "downscale": downscale}),
-                  StageEnv(device, seed, scene_dir=Path(scene)))
+        run_stage(
+            "scene",
+            ws,
+            resolve("prepare", cli={"views": views, "downscale": downscale}),
+            StageEnv(device, seed, scene_dir=Path(scene)),
+        )
         prepared = load_prepared(ws.output("scene", "prepared"))
         splats, pseudo = initial_splats(prepared, cfg, seed), None
     total = cfg.iterations
@@ -370,8 +477,18 @@ def bench_iteration(scene: str, root: str, views: int, downscale: int, window: i
             sizes.append(int(params["means"].shape[0]))
 
     torch.manual_seed(seed)
-    train_gaussians(splats, prepared.train, cfg, device, extent=1.0, desc="bench iteration", seed=seed,
-                    has_masks=prepared.has_masks, on_step=on_step, pseudo=pseudo)
+    train_gaussians(
+        splats,
+        prepared.train,
+        cfg,
+        device,
+        extent=1.0,
+        desc="bench iteration",
+        seed=seed,
+        has_masks=prepared.has_masks,
+        on_step=on_step,
+        pseudo=pseudo,
+    )
     wall_ms = 1e3 * (marks["t1"] - marks["t0"]) / window
     totals: dict[str, float] = {}
     for ev in prof.key_averages():
@@ -382,13 +499,21 @@ def bench_iteration(scene: str, root: str, views: int, downscale: int, window: i
     rows["rest (Python, bookkeeping, profiler)"] = round(wall_ms - sum(rows.values()), 3)
     inner = {name: round(totals.get(name, 0.0), 3) for names in INNER.values() for name in names}
     img = prepared.train[0]
-    return {"benchmark": "iteration", "stage": stage, "scene": workspace if stage == "fine" else scene,
-            "size": [img.width, img.height], "views": len(prepared.train),
-            "iterations": f"{start + 1}..{start + window} of {total}",
-            "half_size_through": int(cfg.half_size_until * cfg.iterations),
-            "gaussians": [min(sizes), max(sizes)], "ms_per_iteration_profiled": round(wall_ms, 3),
-            "phases_ms": rows, "inside_ms": inner, "threads": torch.get_num_threads(),
-            "machine": {"platform": platform.platform(), "cpus": os.cpu_count()}}
+    return {
+        "benchmark": "iteration",
+        "stage": stage,
+        "scene": workspace if stage == "fine" else scene,
+        "size": [img.width, img.height],
+        "views": len(prepared.train),
+        "iterations": f"{start + 1}..{start + window} of {total}",
+        "half_size_through": int(cfg.half_size_until * cfg.iterations),
+        "gaussians": [min(sizes), max(sizes)],
+        "ms_per_iteration_profiled": round(wall_ms, 3),
+        "phases_ms": rows,
+        "inside_ms": inner,
+        "threads": torch.get_num_threads(),
+        "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
+    }
 
 
 def object_psnr(ws: Workspace, masks_from: Workspace) -> dict[str, float]:
@@ -401,13 +526,13 @@ def object_psnr(ws: Workspace, masks_from: Workspace) -> dict[str, float]:
     from .stages.shared import background_for, newest_model
 
     scene = load_prepared(ws.output("scene", "prepared"), load_test_images=True)
-    masked = {f.name: f.mask for f in load_prepared(masks_from.output("scene", "prepared"), True).test}
+    masked = {f.name: f.object_pixels for f in load_prepared(masks_from.output("scene", "prepared"), True).test}
     splats, _ = load_checkpoint(ws.output(newest_model(ws), "model"), scene.norm)
     out = {}
     for f in scene.test:
-        keep = masked[f.name] > 0.5
+        keep = masked[f.name]
         rgb, _ = render_frame(splats, f, torch.device("cpu"), background_for(scene))
-        out[f.name] = psnr(rgb[keep], f.image[keep])
+        out[f.name] = psnr(rgb[keep], f.pixels[keep])
     return out
 
 
@@ -419,21 +544,57 @@ def bench_masks(scene: str, root: str, preset: str, views: int, downscale: int) 
     times of each."""
     base = Path(root) / "masks"
     yardstick = Workspace(base / "scoring_masks")
-    wgs_cli("-w", str(yardstick.root), "prepare", scene, "--views", str(views), "--downscale", str(downscale),
-            "--masks", "auto", "--mask-max-cut", "1", "--mask-max-missed", "1")
+    wgs_cli(
+        "-w",
+        str(yardstick.root),
+        "prepare",
+        scene,
+        "--views",
+        str(views),
+        "--downscale",
+        str(downscale),
+        "--masks",
+        "auto",
+        "--mask-max-cut",
+        "1",
+        "--mask-max-missed",
+        "1",
+    )
     runs = {}
     for mode in ("auto", "none"):
-        ws = base / mode
-        t = wgs_cli("-w", str(ws), "all", scene, "--views", str(views), "--downscale", str(downscale),
-                    "--masks", mode, "--preset", preset)
-        runs[mode] = (Workspace(ws), t)
-    out = {"benchmark": "masks", "scene": scene, "preset": preset, "views": views, "downscale": downscale,
-           "metric": "PSNR (dB) inside the automatic test masks, each model on its own background",
-           "masks": runs["auto"][0].manifest("scene")["summary"]["masks"]}
+        folder = base / mode
+        t = wgs_cli(
+            "-w",
+            str(folder),
+            "all",
+            scene,
+            "--views",
+            str(views),
+            "--downscale",
+            str(downscale),
+            "--masks",
+            mode,
+            "--preset",
+            preset,
+        )
+        runs[mode] = (Workspace(folder), t)
+    out = {
+        "benchmark": "masks",
+        "scene": scene,
+        "preset": preset,
+        "views": views,
+        "downscale": downscale,
+        "metric": "PSNR (dB) inside the automatic test masks, each model on its own background",
+        "masks": runs["auto"][0].finished("scene")["summary"]["masks"],
+    }
     for mode, (ws, t) in runs.items():
         per = object_psnr(ws, yardstick)
-        out[mode] = {"object_psnr": statistics.fmean(per.values()), "per_view": per, "wgs_all_wall_s": round(t, 1),
-                     "eval_psnr": json.loads(ws.output("eval", "results").read_text())["psnr"]}
+        out[mode] = {
+            "object_psnr": statistics.fmean(per.values()),
+            "per_view": per,
+            "wgs_all_wall_s": round(t, 1),
+            "eval_psnr": json.loads(ws.output("eval", "results").read_text())["psnr"],
+        }
     out["gain_db"] = out["auto"]["object_psnr"] - out["none"]["object_psnr"]
     return out
 
@@ -448,8 +609,9 @@ def report(root: str, name: str, res: dict, shown: dict | None = None) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(prog="python -m wgs.bench")
-    ap.add_argument("which", choices=["rasterizer", "iteration", "pipeline", "batch", "contention", "knn", "sfm",
-                                      "shape", "masks"])
+    ap.add_argument(
+        "which", choices=["rasterizer", "iteration", "pipeline", "batch", "contention", "knn", "sfm", "shape", "masks"]
+    )
     ap.add_argument("--json", action="store_true", help="print JSON instead of a table")
     ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--ref-repeats", type=int, default=3)
@@ -461,13 +623,20 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--prepared", help="contention: a workspace after `wgs prepare`")
     ap.add_argument("--stage", default="coarse", choices=["coarse", "fine"], help="iteration: whose training loop")
     ap.add_argument("--workspace", help="iteration --stage fine: a workspace after `wgs repair`")
-    ap.add_argument("--start", type=int, default=None,
-                    help="iteration: the profiled window's first iteration (default: the middle of the stage)")
+    ap.add_argument(
+        "--start",
+        type=int,
+        default=None,
+        help="iteration: the profiled window's first iteration (default: the middle of the stage)",
+    )
     ap.add_argument("--iterations", type=int, default=300, help="contention: coarse iterations per run")
     ap.add_argument("--variants", default=",".join(CONTENTION_VARIANTS), help="contention: thread settings")
     ap.add_argument("--matcher", default="auto", help="sfm: auto, exhaustive or sequential")
-    ap.add_argument("--mirror", default=str(Path(__file__).resolve().parents[2] / ".mirror"),
-                    help="shape: folder of fetched snapshots (owner+name/repo)")
+    ap.add_argument(
+        "--mirror",
+        default=str(Path(__file__).resolve().parents[2] / ".mirror"),
+        help="shape: folder of fetched snapshots (owner+name/repo)",
+    )
     ap.add_argument("--objects", default=",".join(SHAPE_OBJECTS), help="shape: held-out meshes by corpus name")
     a = ap.parse_args(argv)
     if a.which == "iteration":
@@ -476,9 +645,11 @@ def main(argv: list[str] | None = None) -> None:
         if a.stage == "coarse" and not Path(a.scene).is_dir():
             print(f"scene {a.scene} not found: skipped")
             return
-        json.dump(bench_iteration(a.scene, a.root, a.views, a.downscale, stage=a.stage, workspace=a.workspace,
-                                  start=a.start),
-                  sys.stdout, indent=2)
+        json.dump(
+            bench_iteration(a.scene, a.root, a.views, a.downscale, stage=a.stage, workspace=a.workspace, start=a.start),
+            sys.stdout,
+            indent=2,
+        )
         print()
         return
     if a.which == "masks":
@@ -486,8 +657,13 @@ def main(argv: list[str] | None = None) -> None:
             print(f"scene {a.scene} not found: skipped")
             return
         res = bench_masks(a.scene, a.root, a.preset or "default", a.views, a.downscale)
-        report(a.root, "masks", res, {k: v for k, v in res.items() if k not in ("auto", "none")} | {
-            m: {k: v for k, v in res[m].items() if k != "per_view"} for m in ("auto", "none")})
+        report(
+            a.root,
+            "masks",
+            res,
+            {k: v for k, v in res.items() if k not in ("auto", "none")}
+            | {m: {k: v for k, v in res[m].items() if k != "per_view"} for m in ("auto", "none")},
+        )
         return
     if a.which == "shape":
         report(a.root, "shape", bench_shape(a.mirror, a.root, tuple(a.objects.split(",")), a.preset or "fast", a.views))
@@ -531,8 +707,10 @@ def main(argv: list[str] | None = None) -> None:
     for r in res["cases"]:
         for be in ("numba", "torch_reference"):
             f, b = r[be]["forward"], r[be]["forward_backward"]
-            print(f"{r['size']}px x {r['gaussians']:>6} {be:>10} {f['median_s']:>10.4f}s {b['median_s']:>14.4f}s"
-                  f"  ({b['min_s']:.4f}..{b['max_s']:.4f})")
+            print(
+                f"{r['size']}px x {r['gaussians']:>6} {be:>10} {f['median_s']:>10.4f}s {b['median_s']:>14.4f}s"
+                f"  ({b['min_s']:.4f}..{b['max_s']:.4f})"
+            )
         print(f"{'':>14} speed-up (fwd+bwd): {r['speedup_forward_backward']:.1f}x")
     print(f"peak memory: {res['peak_memory_mb']:.0f} MiB")
 

@@ -16,10 +16,12 @@ from typing import Any
 try:
     import tomllib
 except ModuleNotFoundError:  # Python 3.10
-    import tomli as tomllib
+    import tomli as tomllib  # type: ignore[no-redef]
 
 from .errors import InputError
-from .gaussians.strategy import DensifyParams
+from .fields import facts, option
+from .gaussians.trainer import TrainConfig
+from .segment.accept import MaskParams
 from .shape.carve import CarveParams
 from .shape.own_shape import OwnShapeParams
 
@@ -29,79 +31,66 @@ CPU_TARGET_S = 600.0  # a CPU's: the largest size at which `wgs all` is modelled
 
 
 @dataclass
-class PrepareConfig:
-    views: int | None = None  # None: every training view of the dataset
+class PrepareConfig(MaskParams):
+    """The import of a scene; the automatic masks' fields come from `segment.accept.MaskParams`."""
+
+    views: int | None = option(
+        None,
+        "Number of training views, spread over the viewing directions or from sparse_N.txt (not given: every "
+        "training view of the dataset).",
+        bounds=(2, None),
+    )
     # the working size: photos downscaled by this integer factor; None: by the smallest factor that
     # brings their long side to max_size, and without max_size to the size chosen for the machine
     # (GPU_MAX_SIZE, CPU_TARGET_S)
-    downscale: int | None = None
-    max_size: int | None = None  # px, the working size's long side at most (with downscale unset)
-    max_pixels: int = 4096 * 4096  # refuse larger images unless raised
+    downscale: int | None = option(
+        None,
+        "Integer image downscale factor (uses images_K/ if present; not given: the working size chosen for the "
+        "machine, see --max-size).",
+        bounds=(1, None),
+    )
+    max_size: int | None = option(
+        None,
+        (
+            "Downscale the photos by the smallest integer factor that brings their long side to at most this "
+            f"many pixels (not given: {GPU_MAX_SIZE} on a GPU, on a CPU the largest size at which wgs all is "
+            f"modelled to take about {CPU_TARGET_S / 60:.0f} minutes there)."
+        ),
+        bounds=(16, None),
+    )
+    max_pixels: int = option(4096 * 4096, "Refuse images larger than this many pixels.")
     test_every: int = 8  # without a test split: every k-th non-training view
     # photos without poses: structure-from-motion (pycolmap)
-    matcher: str = "auto"  # auto (exhaustive up to 150 photos, else sequential), exhaustive, sequential
+    matcher: str = option(
+        "auto",
+        "Photos without poses: feature matching for structure-from-motion (auto: exhaustive up to 150 photos, else "
+        "sequential by name).",
+        choices=("auto", "exhaustive", "sequential"),
+    )
     sfm_max_image_size: int = 1600  # SIFT on photos downscaled to this longest side
     # object masks: "auto" makes them where the scene has none (a salient-object network, then
     # agreement between the posed views, wgs.segment), "none" makes none, or a folder of masks by image name
-    masks: str = "auto"
-    mask_agreement: float = 0.85  # auto: a voxel stays object for a view when this share of the other views hold it
-    # auto: a view's mask votes only while the other voters hold at least this share of it (a mask
-    # of something else, the wall's pattern or half the object, would cut the object from the others)
-    mask_voter_support: float = 0.7
-    # auto: a pixel the network missed is put back where the voters' silhouette allows object and its
-    # colour is this many times likelier on the mask than on the background (0: never)
-    mask_colour_ratio: float = 10.0
-    mask_model: str | None = None  # auto: an ONNX salient-object model to use instead of the packaged U^2-Net-p
-    # auto: when agreement cuts more than this share of the network's object area (mean over the
-    # views), the views disagree on what the object is, and the scene goes on without masks
-    mask_max_cut: float = 0.3
-    # auto: the training masks' strict hull may leave out at most this share of any training mask;
-    # more means a mask misses part of the object, which the hull would then cut from every view
-    mask_max_missed: float = 0.05
+    masks: str = option(
+        "auto",
+        "Object masks: auto makes them where the scene has none (salient-object network + agreement between the "
+        "posed views), none makes none, or a folder of masks named like the images.",
+    )
     # where the object's leave-one-out silhouettes back a mirror plane (wgs.shape.symmetry), the
     # training photos' mirror images join them as training views: "outline" teaches where the object
     # is not (their masks carve: objects symmetric in shape), "full" their colours too (symmetric in
     # shape and colour: the check sees masks only); "none": no mirror views
-    mirror: str = "outline"
+    mirror: str = option(
+        "outline",
+        "Where the object's leave-one-out silhouettes back a mirror plane, the training photos' mirror images join "
+        "them as training views: outline teaches where the object is not (their masks carve; objects symmetric in "
+        "shape), full their colours too (symmetric in shape and colour); none: no mirror views.",
+        choices=("none", "outline", "full"),
+    )
     mirror_min_gain: float = 0.02  # the mirror must raise the mean leave-one-out silhouette IoU by this
     # ... and the hull of the photos and their mirror images may miss at most this share of the
     # photos' masks (mean over the photos): a plane the object only roughly follows cuts it
-    mirror_max_missed: float = 0.02
-    mirror_directions: int = 400  # plane normals tried, spread over a hemisphere
-
-
-@dataclass
-class TrainConfig(DensifyParams):
-    """The shared 3DGS training loop (coarse, mask-data, fine); densification fields and defaults
-    come from `gaussians.strategy.DensifyParams`."""
-
-    iterations: int = 2000
-    max_seconds: float | None = None  # a time budget: schedules then follow the elapsed fraction of it
-    sh_degree: int = 2
-    sh_increase_every: int = 500
-    lr_means: float = 1.6e-4  # times the scene extent
-    lr_means_final: float = 1.6e-6
-    lr_quats: float = 1e-3
-    lr_scales: float = 5e-3
-    lr_opacities: float = 5e-2
-    lr_sh0: float = 2.5e-3
-    lr_shN: float = 2.5e-3 / 20
-    ssim_weight: float = 0.2
-    mask_weight: float = 0.1
-    # views that teach the outline only (mirror views): the weight of the opacity outside their mask
-    # grown by this many pixels (the photos decide within that margin)
-    outline_weight: float = 1.0
-    outline_margin_px: int = 1
-    # the views at half size (2x2 pixel means) for this fraction of the schedule: the early
-    # iterations, which fit the coarse shape, cost about half as much
-    half_size_until: float = 0.0
-    random_background: bool = True
-    init_points: int = 5000  # visual-hull points at most
-    hull_resolution: int = 96
-    floater_every: int = 500
-    floater_k: int = 8
-    floater_lambda: float = 3.0
-    log_every: int = 50
+    mirror_max_missed: float = option(0.02, bounds=(0.0, 1.0))
+    mirror_directions: int = option(400, bounds=(1, None))  # plane normals tried, spread over a hemisphere
 
 
 def time_boxed(cfg: Any, seconds: float, planned_seconds: float, headroom: float) -> Any:
@@ -109,8 +98,9 @@ def time_boxed(cfg: Any, seconds: float, planned_seconds: float, headroom: float
     caps scaled by the time over `planned_seconds` (what its own iterations take) times `headroom`,
     so that the time, not the caps, ends it; its schedules then follow the elapsed fraction."""
     scale = max(1.0, seconds / max(planned_seconds, 1e-6)) * headroom
-    return dataclasses.replace(cfg, iterations=int(cfg.iterations * scale), refine_stop=int(cfg.refine_stop * scale),
-                               max_seconds=seconds)
+    return dataclasses.replace(
+        cfg, iterations=int(cfg.iterations * scale), refine_stop=int(cfg.refine_stop * scale), max_seconds=seconds
+    )
 
 
 @dataclass
@@ -129,7 +119,11 @@ class CoarseConfig(CurveConfig, TrainConfig):
     # coarse models trained with seeds seed .. seed + ensemble - 1 (the first is G_c); the repair
     # averages their repaired renders: their sparse-view artifacts differ, the object does not
     # (docs/repair-prior.md)
-    ensemble: int = 6
+    ensemble: int = option(
+        6,
+        "Coarse models from consecutive seeds; the repair averages their repaired renders (1: G_c alone).",
+        bounds=(1, None),
+    )
     half_size_until: float = 0.3
 
 
@@ -138,9 +132,13 @@ class MaskDataConfig(TrainConfig):
     """Training of G_d (or the N leave-one-out models) and the corrupted/clean pairs it yields."""
 
     iterations: int = 1500
-    strategy: str = "orm"  # orm | offline-rm | loo
-    n_regions: int = 10
-    coverage: float = 0.5  # fraction of the object's mask area hidden at any time
+    strategy: str = option(
+        "orm",
+        "Pair generation: orm online random masking, offline-rm static masks, loo leave-one-out.",
+        choices=("orm", "offline-rm", "loo"),
+    )
+    n_regions: int = option(10, "Mask regions per view.")
+    coverage: float = option(0.5, "Hidden fraction of the object area.")
     drift: float = 0.08  # sinusoidal displacement amplitude, fraction of the object's size
     drift_period: float = 400.0  # iterations
     warmup: int = 500  # no pairs before this iteration
@@ -152,30 +150,44 @@ class MaskDataConfig(TrainConfig):
 class FinetuneConfig:
     """The LL-domain repair diffusion model D and the HF U-Net U."""
 
-    domain: str = "wavelet"  # wavelet: D on the LL subband + U on HF; rgb: D on RGB, no U
-    levels: int = 1  # Haar levels J: D works at 1/2^J resolution
-    diffusion: str = "embedded"  # embedded: our CPU-sized denoiser; controlnet: SD 1.5 + ControlNet + LoRA
-    sd_model: str | None = None  # local Stable Diffusion 1.5 folder (controlnet)
-    controlnet: str | None = None  # local ControlNet-tile folder (controlnet)
+    domain: str = option(
+        "wavelet",
+        "wavelet: D repairs the LL subband and U the HF ones; rgb: D on RGB, no U.",
+        choices=("wavelet", "rgb"),
+    )
+    levels: int = option(1, "Haar levels J (D at 1/2^J resolution).")
+    diffusion: str = option(
+        "embedded",
+        "embedded: our CPU-sized denoiser; controlnet: SD 1.5 + ControlNet-tile + LoRA.",
+        choices=("embedded", "controlnet"),
+    )
+    sd_model: str | None = option(None, "Local Stable Diffusion 1.5 folder.")
+    controlnet: str | None = option(None, "Local ControlNet-tile folder.")
     lora_rank: int = 64
     lora_lr: float = 1e-3
     lora_steps: int = 500
     lora_crop: int = 64
-    use_u: bool = True
-    prior: str = "builtin"  # builtin: the prior shipped in wgs/prior/weights; none: from scratch; or a folder
-    prior_steps: int = 150  # per-object fine-tune of the prior D (early-stopped on held-out pairs); 0: as shipped
+    use_u: bool = option(True, "Train and use the HF U-Net U.")
+    prior: str = option(
+        "builtin",
+        "Start D and U from the pretrained repair prior (builtin), train them from scratch (none), or from a prior "
+        "folder with D/ and U/.",
+    )
+    prior_steps: int = option(
+        150, "Fine-tune steps of the prior's D on this object's pairs (0: the prior as shipped).", bounds=(0, None)
+    )
     prior_lr: float = 5e-5
     prior_eval_every: int = 25
     prior_patience: int = 4
     train_timesteps: int = 1000
     d_channels: int = 32  # base width; the U-Net uses (c, 2c, 2c)
-    d_steps: int = 1500
+    d_steps: int = option(1500, "Training steps of D.")
     d_batch: int = 16
     d_crop: int = 32
     d_lr: float = 2e-4
     ema_decay: float = 0.995
     u_channels: int = 16
-    u_max_steps: int = 1500
+    u_max_steps: int = option(1500, "Step limit of U (early stopping ends it sooner).")
     u_batch: int = 16
     u_crop: int = 32
     u_lr: float = 1e-3
@@ -192,26 +204,32 @@ class RepairConfig(OwnShapeParams, CarveParams):
     (`shape.own_shape.OwnShapeParams`), and its carving by the volume model V and the silhouette
     model S (the thresholds come from `shape.carve.CarveParams`)."""
 
-    poses: str = "sphere"  # sphere: a Fibonacci band over the view sphere; arc: between neighbouring training views
-    num_views: int = 24  # sphere: pseudo views in all
+    poses: str = option(
+        "sphere",
+        "Pseudo viewpoints: a band over the view sphere or arcs between training views.",
+        choices=("sphere", "arc"),
+    )
+    num_views: int = option(24, "Pseudo views in all (sphere poses).")
     # sphere: the band's elevations, from band_below degrees under the lowest training camera to
     # band_above over the highest
     band_below: float = 15.0
     band_above: float = 40.0
-    views_per_train: int = 2  # arc: novel viewpoints per training view (spread over neighbour pairs)
+    views_per_train: int = option(2, "Novel viewpoints per training view (arc poses).")
     arc_min: float = 0.3  # fraction of the arc between neighbouring training cameras
     arc_max: float = 0.7
-    strength: float = 0.5  # SDEdit: noise level the corrupted image is taken to before denoising
-    steps: int = 10  # DDIM steps
+    strength: float = option(
+        0.5, "SDEdit strength (noise level) of a from-scratch D's repair (a prior's D runs one step)."
+    )
+    steps: int = option(10, "DDIM steps of a from-scratch D's repair.")
     # D repairs each render under this many flips / transposes of it (1..8), averaged; ensemble
     # members take different ones, so D's errors differ between them
-    symmetries: int = 1
+    symmetries: int = option(1, bounds=(1, 8))
     # The visual hull (every mask agreeing) is carved where the volume model V is sure of background,
     # then where the silhouette model S is sure at the pseudo views; G_f starts from the carved hull
     # and learns opacity at the pseudo views inside its outline. Needs masks and V's or S's weights
-    carve: bool = True
-    silhouette_model: str = "builtin"  # builtin: wgs/prior/weights/S; or a folder holding S
-    volume_model: str = "builtin"  # builtin: wgs/prior/weights/V; or a folder holding V
+    carve: bool = option(True, "The volume model V and the silhouette model S carve the visual hull.")
+    silhouette_model: str = "builtin"  # builtin: wgs/weights/S; or a folder holding S
+    volume_model: str = "builtin"  # builtin: wgs/weights/V; or a folder holding V
     hull_resolution: int = TrainConfig.hull_resolution  # voxels along the carved hull's box
     carve_views: int = 32  # S also predicts at this many views over the whole sphere, for carving only
 
@@ -220,7 +238,9 @@ class RepairConfig(OwnShapeParams, CarveParams):
 class LpipsWeightsConfig:
     """Where LPIPS weights are looked for, the same for the fine stage's LPIPS term and eval."""
 
-    lpips_weights: str | None = None  # folder; also $WGS_LPIPS_WEIGHTS, $TORCH_HOME/hub/checkpoints, lpips package
+    lpips_weights: str | None = option(
+        None, "Folder with LPIPS weights (else $WGS_LPIPS_WEIGHTS, $TORCH_HOME/hub/checkpoints)."
+    )
 
 
 @dataclass
@@ -234,22 +254,26 @@ class FineConfig(LpipsWeightsConfig, CurveConfig, TrainConfig):
     # where G_f starts: "hull" trains afresh from the visual-hull init on the real and pseudo views
     # together (G_c's 4-view artifacts are not dragged along), "coarse" refines G_c, "auto" is hull
     # when the scene has masks (else there is no hull to start from)
-    start: str = "auto"
+    start: str = option(
+        "auto",
+        "Train G_f from the visual hull or from G_c (auto: the hull when the scene has masks).",
+        choices=("auto", "coarse", "hull"),
+    )
     pseudo_weight_start: float = 1.0  # a pseudo view's weight against a real view's at the start
     pseudo_weight_end: float = 1.0  # reached at pseudo_until of the iterations; 0 after (real views only)
     pseudo_until: float = 1.0  # fraction of the iterations with pseudo views (GaussianObject: 0.7)
     pseudo_every: int = 2  # one pseudo-view step every k iterations
     lpips_weight: float = 0.1  # LPIPS (VGG) on the pseudo views, used when its weights are on this machine
-    rounds: int = 1  # > 1: the pseudo views are rendered from the refined model, repaired again, trained again
+    rounds: int = option(1, "Rounds of repair + refinement: each later one repairs the refined model's renders again.")
 
 
 @dataclass
 class EvalConfig(LpipsWeightsConfig):
-    lpips_net: str = "alex"  # alex | vgg
-    max_views: int | None = None  # evaluate on the first k test views only
+    lpips_net: str = option("alex", "LPIPS backbone.", choices=("alex", "vgg"))
+    max_views: int | None = option(None, "Evaluate on the first N test views only.")
     repair_gain: bool = True  # also repair G_c's renders at the test poses and score them (the repair's own gain)
     # at this many test poses spread evenly over them (0: all): each repairs every member's render
-    repair_gain_views: int = 25
+    repair_gain_views: int = option(25, "Score the repair at N test poses spread over them (0: all).", bounds=(0, None))
     # the visual hull's grid (voxels along its box's side) whose silhouettes are scored at the test
     # views and, leaving each training view out in turn, at the training views
     hull_resolution: int = TrainConfig.hull_resolution
@@ -270,9 +294,11 @@ class BaselineConfig:
 class AllConfig:
     """`wgs all` as a whole (the `[all]` table)."""
 
-    # a time budget for the run, such as "10m", "90s" or "1h" (a bare number is minutes): the working
-    # size and the training stages' time are chosen so that the run ends within it (wgs.estimate)
-    budget: str | None = None
+    budget: str | None = option(
+        None,
+        "A time budget for the run, such as 10m, 90s or 1h (a bare number is minutes; also [all] budget): the "
+        "working size and the training stages' time are chosen to end within it.",
+    )
 
 
 @dataclass(frozen=True)
@@ -300,35 +326,104 @@ class Stage:
         return self.command.replace("-", "_")
 
 
-_MODEL = {"model": "ckpt.pt",  # the model (normalised world) and its iteration
-          "ply": "point_cloud.ply",  # the model in the INRIA layout, world coordinates
-          "curve": "curve.json"}  # test PSNR / SSIM on probe views against training time (curves.py)
+_MODEL = {
+    "model": "ckpt.pt",  # the model (normalised world) and its iteration
+    "ply": "point_cloud.ply",  # the model in the INRIA layout, world coordinates
+    "curve": "curve.json",
+}  # test PSNR / SSIM on probe views against training time (curves.py)
 
 REGISTRY: tuple[Stage, ...] = (
-    Stage("scene", "scene", "prepare", PrepareConfig, (), "s0_prepare:run_prepare",
-          {"prepared": ".", "info": "scene.json",
-           "masks_sheet": "masks_sheet.png",  # automatic masks: the training photos with their outline
-           "masks_proposed": "masks_proposed"}),  # automatic masks not used (auto_failed): to correct
-    Stage("coarse", "1_coarse", "coarse", CoarseConfig, ("scene",), "s1_coarse:run_coarse",
-          {**_MODEL, "members": "members",  # the ensemble's other models, members/ckpt_<i>.pt (i >= 1)
-           "subbands": "subbands"}),  # Haar subbands of the training views, subbands/{ref,render}/<stem>.exr
-    Stage("mask_data", "2_mask_data", "mask-data", MaskDataConfig, ("scene", "coarse"), "s2_mask_data:run_mask_data",
-          {"index": "index.json"}),  # the corrupted / clean pairs, paths relative to it
-    Stage("finetune", "3_finetune", "finetune", FinetuneConfig, ("coarse", "mask_data"), "s3_finetune:run_finetune",
-          {"models": "."}),  # D/ (or D_lora/) and U/
-    Stage("repair", "4_repair", "repair", RepairConfig, ("scene", "coarse", "finetune"), "s4_repair:run_repair",
-          {"views": "views.json",  # the pseudo views' cameras and weights (and S's silhouette files)
-           "silhouettes": "silhouettes",  # per pseudo view, where the object may be (black: S is sure of background)
-           "carved_hull": "carved_hull.npz",  # the visual hull carved by V and S (shape.hull.save_grid)
-           "pseudo": "pseudo",  # the pseudo references, <stem>.exr (RGB, float) and <name> (PNG)
-           "contact_sheet": "contact_sheet.png"}),
+    Stage(
+        "scene",
+        "scene",
+        "prepare",
+        PrepareConfig,
+        (),
+        "s0_prepare:run_prepare",
+        {
+            "prepared": ".",
+            "info": "scene.json",
+            "masks_sheet": "masks_sheet.png",  # automatic masks: the training photos with their outline
+            "masks_proposed": "masks_proposed",
+        },
+    ),  # automatic masks not used (auto_failed): to correct
+    Stage(
+        "coarse",
+        "1_coarse",
+        "coarse",
+        CoarseConfig,
+        ("scene",),
+        "s1_coarse:run_coarse",
+        {
+            **_MODEL,
+            "members": "members",  # the ensemble's other models, members/ckpt_<i>.pt (i >= 1)
+            "subbands": "subbands",
+        },
+    ),  # Haar subbands of the training views, subbands/{ref,render}/<stem>.exr
+    Stage(
+        "mask_data",
+        "2_mask_data",
+        "mask-data",
+        MaskDataConfig,
+        ("scene", "coarse"),
+        "s2_mask_data:run_mask_data",
+        {"index": "index.json"},
+    ),  # the corrupted / clean pairs, paths relative to it
+    Stage(
+        "finetune",
+        "3_finetune",
+        "finetune",
+        FinetuneConfig,
+        ("coarse", "mask_data"),
+        "s3_finetune:run_finetune",
+        {"models": "."},
+    ),  # D/ (or D_lora/) and U/
+    Stage(
+        "repair",
+        "4_repair",
+        "repair",
+        RepairConfig,
+        ("scene", "coarse", "finetune"),
+        "s4_repair:run_repair",
+        {
+            "views": "views.json",  # the pseudo views' cameras and weights (and S's silhouette files)
+            "silhouettes": "silhouettes",  # per pseudo view, where the object may be (black: S is sure of background)
+            "carved_hull": "carved_hull.npz",  # the visual hull carved by V and S (shape.hull.save_grid)
+            "pseudo": "pseudo",  # the pseudo references, <stem>.exr (RGB, float) and <name> (PNG)
+            "contact_sheet": "contact_sheet.png",
+        },
+    ),
     # fine rounds run the repair again, so it reads finetune's models too
-    Stage("fine", "5_fine", "fine", FineConfig, ("scene", "coarse", "finetune", "repair"), "s5_fine:run_fine",
-          dict(_MODEL)),
-    Stage("baseline", "baseline", "baseline", BaselineConfig, ("scene", "coarse", "fine"), "baseline:run_baseline",
-          {"model": _MODEL["model"], "curve": _MODEL["curve"]}, method=False, on_request=True),
-    Stage("eval", "6_eval", "eval", EvalConfig, ("scene", "coarse", "repair", "fine", "baseline"), "s6_eval:run_eval",
-          {"results": "results.json", "report": "report.md", "report_html": "report.html"}, method=False),
+    Stage(
+        "fine",
+        "5_fine",
+        "fine",
+        FineConfig,
+        ("scene", "coarse", "finetune", "repair"),
+        "s5_fine:run_fine",
+        dict(_MODEL),
+    ),
+    Stage(
+        "baseline",
+        "baseline",
+        "baseline",
+        BaselineConfig,
+        ("scene", "coarse", "fine"),
+        "baseline:run_baseline",
+        {"model": _MODEL["model"], "curve": _MODEL["curve"]},
+        method=False,
+        on_request=True,
+    ),
+    Stage(
+        "eval",
+        "6_eval",
+        "eval",
+        EvalConfig,
+        ("scene", "coarse", "repair", "fine", "baseline"),
+        "s6_eval:run_eval",
+        {"results": "results.json", "report": "report.md", "report_html": "report.html"},
+        method=False,
+    ),
 )
 STAGES: dict[str, type] = {s.table: s.config for s in REGISTRY}  # config table -> settings class
 TABLE_OF: dict[str, str] = {s.name: s.table for s in REGISTRY}  # stage name -> its config table
@@ -346,24 +441,51 @@ def stages_through(name: str) -> tuple[str, ...]:
 
 # Small budgets for the bundled example (`make demo`), shared by every 3DGS training stage.
 # a few hundred iterations leave no room for a half-size phase (docs/speed.md)
-_FAST_TRAIN = {"refine_start": 100, "refine_every": 50, "sh_degree": 1, "sh_increase_every": 200,
-               "init_points": 3000, "hull_resolution": 64, "max_gaussians": 20000, "floater_every": 200,
-               "half_size_until": 0.0}
+_FAST_TRAIN = {
+    "refine_start": 100,
+    "refine_every": 50,
+    "sh_degree": 1,
+    "sh_increase_every": 200,
+    "init_points": 3000,
+    "hull_resolution": 64,
+    "max_gaussians": 20000,
+    "floater_every": 200,
+    "half_size_until": 0.0,
+}
 
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "fast": {
         "coarse": {**_FAST_TRAIN, "iterations": 400, "refine_stop": 300, "ensemble": 1},
-        "mask_data": {**_FAST_TRAIN, "iterations": 200, "refine_stop": 150, "warmup": 60, "pair_every": 28,
-                      "drift_period": 100.0},
-        "finetune": {"d_steps": 300, "u_max_steps": 100, "d_channels": 16, "u_eval_every": 25, "u_patience": 2,
-                     "prior_steps": 15},
+        "mask_data": {
+            **_FAST_TRAIN,
+            "iterations": 200,
+            "refine_stop": 150,
+            "warmup": 60,
+            "pair_every": 28,
+            "drift_period": 100.0,
+        },
+        "finetune": {
+            "d_steps": 300,
+            "u_max_steps": 100,
+            "d_channels": 16,
+            "u_eval_every": 25,
+            "u_patience": 2,
+            "prior_steps": 15,
+        },
         "repair": {"steps": 5, "num_views": 16, "band_above": 25.0},
         "fine": {**_FAST_TRAIN, "iterations": 300, "refine_start": 50, "refine_stop": 200},
     },
     "default": {},
     "paper": {
-        "coarse": {"iterations": 10000, "refine_stop": 7000, "sh_degree": 3, "max_gaussians": 1000000,
-                   "init_points": 100000, "hull_resolution": 128, "reset_every": 3000},
+        "coarse": {
+            "iterations": 10000,
+            "refine_stop": 7000,
+            "sh_degree": 3,
+            "max_gaussians": 1000000,
+            "init_points": 100000,
+            "hull_resolution": 128,
+            "reset_every": 3000,
+        },
     },
 }
 
@@ -426,8 +548,9 @@ def load_config_file(path: str | Path) -> dict[str, Any]:
     return out
 
 
-def resolve(stage: str, preset: str | None = None, file_cfg: dict[str, Any] | None = None,
-            cli: dict[str, Any] | None = None) -> Any:
+def resolve(
+    stage: str, preset: str | None = None, file_cfg: dict[str, Any] | None = None, cli: dict[str, Any] | None = None
+) -> Any:
     """Build a stage's config: defaults < preset < file < CLI (CLI values of None are ignored)."""
     cls = STAGES[stage]
     values: dict[str, Any] = {}
@@ -447,25 +570,23 @@ def as_dict(cfg: Any) -> dict[str, Any]:
     return dataclasses.asdict(cfg)
 
 
-# the allowed values of a text field, whichever stage's config holds it
-CHOICES: dict[str, tuple[str, ...]] = {"strategy": ("orm", "offline-rm", "loo"), "domain": ("wavelet", "rgb"),
-                                       "poses": ("sphere", "arc"), "start": ("auto", "coarse", "hull"),
-                                       "lpips_net": ("alex", "vgg"), "diffusion": ("embedded", "controlnet"),
-                                       "matcher": ("auto", "exhaustive", "sequential"),
-                                       "mirror": ("none", "outline", "full")}
+def _facts_by_field(key: str) -> dict[str, Any]:
+    """`key` ("choices" or "range") of every stage config's fields that declare it, by field name
+    (one name, one fact, whichever stage's config holds it)."""
+    out: dict[str, Any] = {}
+    for cls in STAGES.values():
+        for f in dataclasses.fields(cls):
+            value = facts(cls, f.name).get(key)
+            if value is not None:
+                if out.setdefault(f.name, value) != value:
+                    raise AssertionError(f"field {f.name} declares two {key}")
+    return out
 
 
-# the allowed range of a numeric field, inclusive (None: open), whichever stage's config holds it
-RANGES: dict[str, tuple[float, float | None]] = {"views": (2, None), "downscale": (1, None), "max_size": (16, None),
-                                                 "sh_degree": (0, 3),
-                                                 "ensemble": (1, None), "symmetries": (1, 8),
-                                                 "repair_gain_views": (0, None), "mask_agreement": (0.0, 1.0),
-                                                 "mask_voter_support": (0.0, 1.0), "mask_max_missed": (0.0, 1.0),
-                                                 "mask_colour_ratio": (0.0, None),
-                                                 "mask_max_cut": (0.0, 1.0), "mirror_directions": (1, None),
-                                                 "mirror_max_missed": (0.0, 1.0), "outline_margin_px": (0, None),
-                                                 "shape_max_missed": (0.0, 1.0),
-                                                 "half_size_until": (0.0, 1.0), "prior_steps": (0, None)}
+# the allowed values of a text field, and the allowed range of a numeric one (inclusive, None:
+# open), as the fields declare them (`fields.option`)
+CHOICES: dict[str, tuple[str, ...]] = _facts_by_field("choices")
+RANGES: dict[str, tuple[float, float | None]] = _facts_by_field("range")
 
 
 def check_choices(cfg: Any) -> None:

@@ -13,7 +13,7 @@ from .workspace import Workspace
 
 
 @dataclass
-class Ctx:
+class RunOptions:
     """What every command shares: the global options and the config file's tables. The pipeline,
     the ablation and the batch runner take this plain object, never click's context."""
 
@@ -55,8 +55,11 @@ class Ctx:
 
         dev = resolve_device(self.device)
         backend = pick_backend(dev)
-        slow = " (the reference: slower than numba on a CPU; pip install 'wgs[cuda]' for gsplat)" if (
-            dev.type != "cpu" and backend == "torch") else ""
+        slow = (
+            " (the reference: slower than numba on a CPU; pip install 'wgs[cuda]' for gsplat)"
+            if (dev.type != "cpu" and backend == "torch")
+            else ""
+        )
         log(f"device: {dev}, rasterizer: {backend}{slow}")
         return dev
 
@@ -66,7 +69,7 @@ class Ctx:
 
         return StageEnv(**{"device": device if device is not None else self.torch_device(), "seed": self.seed, **kw})
 
-    def run_stage(self, name: str, cfg: Any, force: bool = False, ws: Workspace | None = None, **env: Any) -> bool:
+    def run(self, name: str, cfg: Any, force: bool = False, ws: Workspace | None = None, **env: Any) -> bool:
         """Run one stage in this run's workspace (or `ws`) through the registry."""
         from .stages import run_stage
 

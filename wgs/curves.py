@@ -24,8 +24,9 @@ def probe_views(test_names: list[str], k: int) -> list[int]:
     return sorted({round(i * (n - 1) / max(k - 1, 1)) for i in range(k)})
 
 
-def test_probe(ws: Workspace, scene: PreparedScene, cfg, background: torch.Tensor, device: torch.device
-               ) -> tuple[Probe | None, list[str]]:
+def test_probe(
+    ws: Workspace, scene: PreparedScene, cfg, background: torch.Tensor, device: torch.device
+) -> tuple[Probe | None, list[str]]:
     """Mean PSNR / SSIM of the splats on `cfg.curve_views` test views, and their names, every
     `cfg.curve_every_s` training seconds and at least `cfg.curve_points` times over the iterations
     (not under a time budget); (None, []) when the scene has no test views or the curve is off.
@@ -35,7 +36,7 @@ def test_probe(ws: Workspace, scene: PreparedScene, cfg, background: torch.Tenso
     if not ids:
         return None, []
     frames = load_frame_images(ws.output("scene", "prepared"), [scene.test[i] for i in ids])
-    refs = [composite(f.image, f.mask, background) for f in frames]
+    refs = [composite(f.pixels, f.mask, background) for f in frames]
 
     def fn(splats) -> dict[str, float]:
         ps, ss = [], []

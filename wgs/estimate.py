@@ -121,7 +121,8 @@ def _calibrate(device: torch.device) -> Calibration:
         for s in CALIBRATION_SIDES:
             timed = time_backend(pick_backend(device), s, CALIBRATION_GAUSSIANS, 2, device=device)
             best[s] = min(best[s], timed["forward_backward"]["min_s"])
-    raster = _affine(CALIBRATION_SIDES, tuple(best[s] + _loss_s(s, device, gen) for s in CALIBRATION_SIDES))
+    small, large = (best[s] + _loss_s(s, device, gen) for s in CALIBRATION_SIDES)
+    raster = _affine(CALIBRATION_SIDES, (small, large))
     d = LLDenoiser(LLDenoiserConfig(3, D_STEP_CHANNELS)).to(device)
     opt = torch.optim.Adam(d.parameters(), 1e-4)
     x = torch.randn(D_STEP_BATCH, 3, D_STEP_CROP, D_STEP_CROP, generator=gen).to(device)
@@ -145,8 +146,9 @@ def _calibrate(device: torch.device) -> Calibration:
             _sync(device)
             if i:
                 forwards.append(time.perf_counter() - t1)
-    return Calibration(raster, min(steps), min(forwards) / (side * side), configured_count(), str(device),
-                       time.perf_counter() - t0)
+    return Calibration(
+        raster, min(steps), min(forwards) / (side * side), configured_count(), str(device), time.perf_counter() - t0
+    )
 
 
 def _loss_s(side: int, device: torch.device, gen: torch.Generator, repeats: int = 6) -> float:
@@ -173,8 +175,10 @@ def machine_key(device: torch.device) -> str:
     from . import __version__
     from .threads import configured_count
 
-    return f"{platform.node()}|{platform.machine()}|{device}|{configured_count()} threads|torch {torch.__version__}|" \
-           f"wgs {__version__}"
+    return (
+        f"{platform.node()}|{platform.machine()}|{device}|{configured_count()} threads|torch {torch.__version__}|"
+        f"wgs {__version__}"
+    )
 
 
 def cached_calibration(device: torch.device, now: float | None = None) -> Calibration:
@@ -189,8 +193,11 @@ def cached_calibration(device: torch.device, now: float | None = None) -> Calibr
         held = {}
     cal = calibrate(device)
     try:
-        fresh = {k: v for k, v in (held if isinstance(held, dict) else {}).items()
-                 if isinstance(v, dict) and now - v.get("made", 0) <= CALIBRATION_MAX_AGE_S}
+        fresh = {
+            k: v
+            for k, v in (held if isinstance(held, dict) else {}).items()
+            if isinstance(v, dict) and now - v.get("made", 0) <= CALIBRATION_MAX_AGE_S
+        }
         atomic_write_json(path, {**fresh, key: {"made": now, "calibration": dataclasses.asdict(cal)}})
     except OSError:
         pass  # a read-only home: calibrate every run
@@ -231,13 +238,21 @@ def loops(cal: Calibration, cfgs: dict[str, Any], facts: SceneFacts) -> dict[str
     mask: MaskDataConfig = cfgs["mask_data"]
     masks = 1.0 if facts.has_masks else NO_MASKS_FACTOR
     return {
-        "coarse": (math.ceil(coarse.ensemble / workers),
-                   _loop_s(cal, coarse, facts.pixels) * (workers / SIDE_BY_SIDE_THROUGHPUT if workers > 1 else 1),
-                   FACTOR["coarse"] * masks),
-        "mask_data": (facts.n_train if mask.strategy == "loo" else 1, _loop_s(cal, mask, facts.pixels),
-                      FACTOR["mask_data"] * masks),
-        "fine": (max(1, fine.rounds), _loop_s(cal, fine, facts.pixels, renders=1 + 1 / max(fine.pseudo_every, 1)),
-                 FACTOR["fine"] * masks),
+        "coarse": (
+            math.ceil(coarse.ensemble / workers),
+            _loop_s(cal, coarse, facts.pixels) * (workers / SIDE_BY_SIDE_THROUGHPUT if workers > 1 else 1),
+            FACTOR["coarse"] * masks,
+        ),
+        "mask_data": (
+            facts.n_train if mask.strategy == "loo" else 1,
+            _loop_s(cal, mask, facts.pixels),
+            FACTOR["mask_data"] * masks,
+        ),
+        "fine": (
+            max(1, fine.rounds),
+            _loop_s(cal, fine, facts.pixels, renders=1 + 1 / max(fine.pseudo_every, 1)),
+            FACTOR["fine"] * masks,
+        ),
     }
 
 
@@ -245,21 +260,25 @@ def stage_seconds(cal: Calibration, cfgs: dict[str, Any], facts: SceneFacts) -> 
     """Modelled wall time of each stage (config table -> seconds) for the stage configs `cfgs`
     (config table -> config) on a scene with `facts`."""
     fixed = {k: v * cal.d_step_s for k, v in FIXED_STEPS.items()}
-    out = {"prepare": fixed["prepare"] + PREPARE_S_PER_MEGAPIXEL * (facts.n_train + facts.n_test)
-           * facts.full_pixels / 1e6}
+    out = {
+        "prepare": fixed["prepare"] + PREPARE_S_PER_MEGAPIXEL * (facts.n_train + facts.n_test) * facts.full_pixels / 1e6
+    }
     for table, (count, loop, factor) in loops(cal, cfgs, facts).items():
         cfg = cfgs[table]
         if cfg.max_seconds:
             loop, factor = min(loop * factor, cfg.max_seconds), 1.0
         out[table] = fixed[table] + count * loop * factor
     ft, ev = cfgs["finetune"], cfgs["eval"]
-    d_pixels = facts.pixels / 4 ** ft.levels if ft.domain == "wavelet" else facts.pixels
+    d_pixels = facts.pixels / 4**ft.levels if ft.domain == "wavelet" else facts.pixels
     d_steps = ft.prior_steps if ft.prior != "none" else ft.d_steps
-    width = (ft.d_channels / D_STEP_CHANNELS) ** 2 * (ft.d_batch * ft.d_crop ** 2) / (D_STEP_BATCH * D_STEP_CROP ** 2)
+    width = (ft.d_channels / D_STEP_CHANNELS) ** 2 * (ft.d_batch * ft.d_crop**2) / (D_STEP_BATCH * D_STEP_CROP**2)
     u_steps = ft.u_max_steps * U_STEPS_RUN if ft.use_u and ft.domain == "wavelet" else 0
     # D's held-out check: SDEdit on the held-out pairs (about 44 pairs from G_d) every prior_eval_every steps
-    checks = (d_steps // max(ft.prior_eval_every, 1) + 1) * math.ceil(44 * ft.holdout) \
+    checks = (
+        (d_steps // max(ft.prior_eval_every, 1) + 1)
+        * math.ceil(44 * ft.holdout)
         * math.ceil(ft.eval_steps * ft.eval_strength)
+    )
     steps_s = cal.d_step_s * (FACTOR["finetune"] * d_steps * width + u_steps * U_STEP_SHARE)
     out["finetune"] = fixed["finetune"] + steps_s + checks * d_pixels * cal.d_forward_s_per_pixel
     rp = cfgs["repair"]
@@ -271,13 +290,16 @@ def stage_seconds(cal: Calibration, cfgs: dict[str, Any], facts: SceneFacts) -> 
     n_eval = min(facts.n_test, ev.max_views or facts.n_test)
     gain = min(ev.repair_gain_views or n_eval, n_eval) if ev.repair_gain else 0
     out["eval"] = fixed["eval"] + FACTOR["eval"] * (
-        n_eval * cal.view_s(facts.pixels) + gain * ensemble * per_render
-        + ev.turntable_frames * cal.view_s(facts.pixels) / 2)
+        n_eval * cal.view_s(facts.pixels)
+        + gain * ensemble * per_render
+        + ev.turntable_frames * cal.view_s(facts.pixels) / 2
+    )
     return {k: round(v, 1) for k, v in out.items()}
 
 
-def choose_downscale(cal: Calibration, cfgs: dict[str, Any], facts: SceneFacts, target_s: float | None
-                     ) -> tuple[int, float | None]:
+def choose_downscale(
+    cal: Calibration, cfgs: dict[str, Any], facts: SceneFacts, target_s: float | None
+) -> tuple[int, float | None]:
     """The working size for the machine: on a GPU a long side of at most GPU_MAX_SIZE; else (or
     within a budget) the largest integer downscale of the photos (`facts` at full size) at which
     the modelled `wgs all` takes at most `target_s`, but not below MIN_SIZE. Returns (downscale,
@@ -285,7 +307,7 @@ def choose_downscale(cal: Calibration, cfgs: dict[str, Any], facts: SceneFacts, 
     first = downscale_for(facts.width, facts.height, GPU_MAX_SIZE) if cal.device != "cpu" else 1
     if target_s is None:
         return first, None
-    last = max(first, downscale_for(facts.width, facts.height, MIN_SIZE))
+    last = max(first, max(facts.width, facts.height) // MIN_SIZE)  # the last long side >= MIN_SIZE
     k, total = first, math.inf
     for k in range(first, last + 1):
         w, h = facts.width // k, facts.height // k
@@ -295,8 +317,9 @@ def choose_downscale(cal: Calibration, cfgs: dict[str, Any], facts: SceneFacts, 
     return k, total
 
 
-def budget_plan(cal: Calibration, cfgs: dict[str, Any], facts: SceneFacts, left_s: float,
-                runs: tuple[str, ...] = tuple(FACTOR)) -> dict[str, Any]:
+def budget_plan(
+    cal: Calibration, cfgs: dict[str, Any], facts: SceneFacts, left_s: float, runs: tuple[str, ...] = tuple(FACTOR)
+) -> dict[str, Any]:
     """The training stages in `runs` time-boxed so that the stages in `runs` take `left_s` seconds:
     what the others are modelled to take is set aside, the rest shared among coarse, mask-data and
     fine in proportion to their modelled times. Returns {"stages": table -> time-boxed config,
@@ -360,24 +383,34 @@ class RunTiming:
         """The working size (`stages.WorkingSize`)."""
         if self.device.type != "cpu" and not self.budget_s:
             k = downscale_for(width, height, GPU_MAX_SIZE)
-            return k, (f"working size: {width // k}x{height // k} (the photos' {width}x{height} / {k}): a long side "
-                       f"of at most {GPU_MAX_SIZE} px on a GPU; --max-size or --downscale set it")
+            return k, (
+                f"working size: {width // k}x{height // k} (the photos' {width}x{height} / {k}): a long side "
+                f"of at most {GPU_MAX_SIZE} px on a GPU; --max-size or --downscale set it"
+            )
         cal = self.calibration()
         target = self.budget_s or CPU_TARGET_S
-        facts = SceneFacts(width, height, n_train, n_test, full_pixels=width * height,
-                           has_masks=self.cfgs["prepare"].masks != "none")
-        k, total = choose_downscale(cal, self.cfgs, facts, target)
+        facts = SceneFacts(
+            width, height, n_train, n_test, full_pixels=width * height, has_masks=self.cfgs["prepare"].masks != "none"
+        )
+        k, modelled = choose_downscale(cal, self.cfgs, facts, target)
+        total = modelled if modelled is not None else math.inf  # a target gives a time
         limit = f"the budget of {minutes(target)}" if self.budget_s else f"about {minutes(target)}"
         if k == 1 and total <= target:
             why = f"the photos' own size: wgs all is modelled to take {minutes(total)} at it"
         elif total <= target:
-            why = (f"the photos' {width}x{height} / {k}, the largest size at which wgs all is modelled to take "
-                   f"{limit} ({minutes(total)})")
+            why = (
+                f"the photos' {width}x{height} / {k}, the largest size at which wgs all is modelled to take "
+                f"{limit} ({minutes(total)})"
+            )
         else:
-            why = (f"the photos' {width}x{height} / {k}, the smallest allowed (a long side of {MIN_SIZE} px): wgs "
-                   f"all is modelled to take {minutes(total)} at it, over {limit}")
-        return k, (f"working size: {width // k}x{height // k} ({why}; {cal.device}, {cal.threads} threads); "
-                   "--max-size or --downscale set it")
+            why = (
+                f"the photos' {width}x{height} / {k}, the smallest allowed (a long side of at least {MIN_SIZE} px): "
+                f"wgs all is modelled to take {minutes(total)} at it, over {limit}"
+            )
+        return k, (
+            f"working size: {width // k}x{height // k} ({why}; {cal.device}, {cal.threads} threads); "
+            "--max-size or --downscale set it"
+        )
 
     def after_prepare(self, ws: Workspace, info: dict[str, Any], runs: tuple[str, ...]) -> dict[str, Any]:
         """Print the estimate of the stages in `runs` (config tables) that are not up to date and,
@@ -390,20 +423,24 @@ class RunTiming:
         cfgs = dict(self.cfgs)
         plan: dict[str, Any] | None = None
         if self.budget_s:
-            reuse = held.get("budget_s") == self.budget_s and held.get("plan") and all(
-                _fresh(ws, t, cfgs[t], held["plan"]["stages"].get(t)) for t in TRAIN_STAGES if t in runs)
+            reuse = (
+                held.get("budget_s") == self.budget_s
+                and held.get("plan")
+                and all(_fresh(ws, t, cfgs[t], held["plan"]["stages"].get(t)) for t in TRAIN_STAGES if t in runs)
+            )
             if reuse:  # a rerun with the same budget keeps its time-boxes: the stages stay up to date
                 plan = held["plan"]
             else:
                 left = self.budget_s - (time.perf_counter() - self.started) - END_S
                 made = budget_plan(self.calibration(), cfgs, facts, left, runs)
-                plan = {"stages": {t: _boxed_fields(c) for t, c in made["stages"].items()},
-                        "seconds": made["seconds"]}
+                plan = {"stages": {t: _boxed_fields(c) for t, c in made["stages"].items()}, "seconds": made["seconds"]}
             for t, fields in plan["stages"].items():
                 cfgs[t] = dataclasses.replace(cfgs[t], **fields)
-            log(f"budget: {minutes(self.budget_s)} -> " + ", ".join(
-                f"{t.replace('_', '-')} {minutes(s)}" for t, s in plan["seconds"].items() if t in runs)
-                + " (the training stages time-boxed)")
+            log(
+                f"budget: {minutes(self.budget_s)} -> "
+                + ", ".join(f"{t.replace('_', '-')} {minutes(s)}" for t, s in plan["seconds"].items() if t in runs)
+                + " (the training stages time-boxed)"
+            )
         pending = tuple(t for t in runs if t != "prepare" and not _fresh(ws, t, cfgs[t]))
         record: dict[str, Any] = {"budget_s": self.budget_s, "plan": plan}
         if pending:
@@ -411,9 +448,17 @@ class RunTiming:
             model = stage_seconds(cal, cfgs, facts)
             estimate = {t: model[t] for t in pending}
             log(estimate_line(estimate))
-            record.update(estimate=estimate, calibration=dataclasses.asdict(cal),
-                          scene={"width": w, "height": h, "train": facts.n_train, "test": facts.n_test,
-                                 "has_masks": facts.has_masks})
+            record.update(
+                estimate=estimate,
+                calibration=dataclasses.asdict(cal),
+                scene={
+                    "width": w,
+                    "height": h,
+                    "train": facts.n_train,
+                    "test": facts.n_test,
+                    "has_masks": facts.has_masks,
+                },
+            )
         elif held.get("estimate"):
             record.update({k: held[k] for k in ("estimate", "calibration", "scene") if k in held})
         ws.write_run_record(record)

@@ -31,10 +31,20 @@ class LpipsUnavailable(Exception):
 def _features(net: str) -> nn.Sequential:
     if net == "alex":
         return nn.Sequential(
-            nn.Conv2d(3, 64, 11, 4, 2), nn.ReLU(), nn.MaxPool2d(3, 2),
-            nn.Conv2d(64, 192, 5, padding=2), nn.ReLU(), nn.MaxPool2d(3, 2),
-            nn.Conv2d(192, 384, 3, padding=1), nn.ReLU(), nn.Conv2d(384, 256, 3, padding=1), nn.ReLU(),
-            nn.Conv2d(256, 256, 3, padding=1), nn.ReLU(), nn.MaxPool2d(3, 2))
+            nn.Conv2d(3, 64, 11, 4, 2),
+            nn.ReLU(),
+            nn.MaxPool2d(3, 2),
+            nn.Conv2d(64, 192, 5, padding=2),
+            nn.ReLU(),
+            nn.MaxPool2d(3, 2),
+            nn.Conv2d(192, 384, 3, padding=1),
+            nn.ReLU(),
+            nn.Conv2d(384, 256, 3, padding=1),
+            nn.ReLU(),
+            nn.Conv2d(256, 256, 3, padding=1),
+            nn.ReLU(),
+            nn.MaxPool2d(3, 2),
+        )
     layers: list[nn.Module] = []
     cin = 3
     for v in (64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M", 512, 512, 512, "M"):
@@ -77,6 +87,9 @@ def _find(name: str, dirs: list[Path]) -> Path | None:
 
 
 class LPIPS(nn.Module):
+    shift: torch.Tensor  # buffers: the input normalisation
+    scale: torch.Tensor
+
     def __init__(self, net: str = "alex", weights_dir: str | Path | None = None):
         super().__init__()
         if net not in BACKBONE_FILES:
@@ -87,11 +100,12 @@ class LPIPS(nn.Module):
             missing = [f for f, p in ((BACKBONE_FILES[net], bb), (LIN_FILES[net], lin)) if p is None]
             raise LpipsUnavailable(
                 f"LPIPS-{net} weights not found ({', '.join(missing)} in {', '.join(map(str, dirs))}); on a machine "
-                "with internet, get the torchvision backbone and the LPIPS v0.1 linear layers and copy them there")
+                "with internet, get the torchvision backbone and the LPIPS v0.1 linear layers and copy them there"
+            )
         self.net = net
         self.features = _features(net)
         state = torch.load(bb, map_location="cpu", weights_only=True)
-        self.features.load_state_dict({k[len("features."):]: v for k, v in state.items() if k.startswith("features.")})
+        self.features.load_state_dict({k[len("features.") :]: v for k, v in state.items() if k.startswith("features.")})
         lin_state = torch.load(lin, map_location="cpu", weights_only=True)
         self.lins = nn.ModuleList()
         for i, ch in enumerate(CHANNELS[net]):

@@ -71,8 +71,15 @@ def edge_share(mask: torch.Tensor) -> float:
     return float(edge.float().mean())
 
 
-def make_region_masks(objects: torch.Tensor, n_regions: int = 10, coverage: float = 0.5, drift: float = 0.08,
-                      period: float = 400.0, offline: bool = False, seed: int = 0) -> RegionMasks:
+def make_region_masks(
+    objects: torch.Tensor,
+    n_regions: int = 10,
+    coverage: float = 0.5,
+    drift: float = 0.08,
+    period: float = 400.0,
+    offline: bool = False,
+    seed: int = 0,
+) -> RegionMasks:
     """Regions for object masks [V, H, W] (> 0.5 is object).
 
     drift: amplitude of the sinusoidal displacement, as a fraction of the object's size;

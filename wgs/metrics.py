@@ -32,14 +32,16 @@ def gaussian_window(size: int = 11, sigma: float = 1.5, dtype=torch.float64) -> 
 
 def check_ssim_inputs(x: torch.Tensor, y: torch.Tensor, padding: str) -> None:
     if x.shape != y.shape or x.dim() != 4:
-        raise ValueError(f"ssim_map expects two [B, C, H, W] batches of one shape, got {tuple(x.shape)}, "
-                         f"{tuple(y.shape)}")
+        raise ValueError(
+            f"ssim_map expects two [B, C, H, W] batches of one shape, got {tuple(x.shape)}, {tuple(y.shape)}"
+        )
     if padding not in ("zeros", "reflect"):
         raise ValueError(f"ssim_map padding must be 'zeros' or 'reflect', got {padding!r}")
 
 
-def ssim_map(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5, padding: str = "zeros",
-             eps: float = 0.0) -> torch.Tensor:
+def ssim_map(
+    x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5, padding: str = "zeros", eps: float = 0.0
+) -> torch.Tensor:
     """SSIM map of two batches [B, C, H, W] -> [B, C, H, W]; differentiable, any float dtype.
 
     padding "zeros": the 3DGS papers' metric; "reflect" with eps = 1e-12: kornia.metrics.ssim's
@@ -108,8 +110,9 @@ class SSIMMapFast(torch.autograd.Function):
         return a_mu + 2 * x * a_xx + y * a_xy, None, None, None, None, None
 
 
-def ssim_map_fast(x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5, padding: str = "zeros",
-                  eps: float = 0.0) -> torch.Tensor:
+def ssim_map_fast(
+    x: torch.Tensor, y: torch.Tensor, window: int = 11, sigma: float = 1.5, padding: str = "zeros", eps: float = 0.0
+) -> torch.Tensor:
     """`ssim_map` for a loss: differentiable in x only (y is the reference)."""
     check_ssim_inputs(x, y, padding)
     return SSIMMapFast.apply(x, y.detach(), window, sigma, padding, eps)

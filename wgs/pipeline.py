@@ -18,7 +18,7 @@ from .progress import fmt, log, results
 from .workspace import COMMANDS, Workspace
 
 MANY_VIEWS = 12  # from this many training views on, diffusion repair is left out by default
-REPAIR_STAGES = METHOD[METHOD.index("coarse") + 1:]  # what a sparse-view scene adds to plain 3DGS
+REPAIR_STAGES = METHOD[METHOD.index("coarse") + 1 :]  # what a sparse-view scene adds to plain 3DGS
 
 
 @dataclass
@@ -42,9 +42,16 @@ def left_out(stage: str, info: dict[str, Any], force_repair: bool, asked: tuple[
     return None
 
 
-def run_all(ctx, scene_dir: Path, preset: str | None, force: bool, force_repair: bool,
-            overrides: dict[str, dict[str, Any]], asked: tuple[str, ...] = (), budget_s: float | None = None
-            ) -> list[StageOutcome]:
+def run_all(
+    ctx,
+    scene_dir: Path,
+    preset: str | None,
+    force: bool,
+    force_repair: bool,
+    overrides: dict[str, dict[str, Any]],
+    asked: tuple[str, ...] = (),
+    budget_s: float | None = None,
+) -> list[StageOutcome]:
     """Run the registry's stages in order for the CLI context `ctx` (workspace, device, seed,
     config file), leaving out what the scene does not need and, of the stages that run only on
     request, those not in `asked`. After prepare it prints the estimate of what is left and, with
@@ -102,15 +109,21 @@ def print_summary(ws: Workspace, outcomes: list[StageOutcome]) -> None:
     for o in outcomes:
         m = ws.manifest(STAGE_OF_TABLE[o.stage]) or {}
         wt = m.get("wall_time_s")
-        table.add_row(o.stage, o.status + (f" ({o.note})" if o.note else ""), f"{o.seconds:.1f}",
-                      "" if wt is None else f"{wt:.1f}")
+        table.add_row(
+            o.stage,
+            o.status + (f" ({o.note})" if o.note else ""),
+            f"{o.seconds:.1f}",
+            "" if wt is None else f"{wt:.1f}",
+        )
     results.print(table)
     res_path = ws.output("eval", "results")
     if res_path.is_file():
         r = read_json(res_path)
         c = r["coarse"]
 
-        results.print(f"test views: {r['num_views']}   PSNR {fmt(c['psnr'], 2)} -> {fmt(r['psnr'], 2)} dB   "
-                      f"SSIM {fmt(c['ssim'])} -> {fmt(r['ssim'])}   LPIPS {fmt(c['lpips'])} -> {fmt(r['lpips'])}   "
-                      f"(coarse -> final)")
+        results.print(
+            f"test views: {r['num_views']}   PSNR {fmt(c['psnr'], 2)} -> {fmt(r['psnr'], 2)} dB   "
+            f"SSIM {fmt(c['ssim'])} -> {fmt(r['ssim'])}   LPIPS {fmt(c['lpips'])} -> {fmt(r['lpips'])}   "
+            f"(coarse -> final)"
+        )
         results.print(f"report: {ws.output('eval', 'report')}")

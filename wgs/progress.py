@@ -7,7 +7,7 @@ import contextlib
 from collections.abc import Iterator
 
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TaskID, TextColumn, TimeElapsedColumn
 
 console = Console(stderr=True, highlight=False)  # progress and logs
 results = Console(highlight=False)  # what a command was asked to show (stdout, never silenced)
@@ -30,12 +30,21 @@ def log(msg: str) -> None:
         console.print(msg)
 
 
+BAR = TaskID(0)  # the one task of a `progress_bar`
+
+
 @contextlib.contextmanager
 def progress_bar(description: str, total: int) -> Iterator[Progress]:
     """A progress bar with a free-text status field (`progress.update(task, status=...)`)."""
     with Progress(
-        TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-        TextColumn("{task.fields[status]}"), console=console, disable=_quiet, transient=False,
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        TextColumn("{task.fields[status]}"),
+        console=console,
+        disable=_quiet,
+        transient=False,
     ) as prog:
         prog.add_task(description, total=total, status="")
         yield prog

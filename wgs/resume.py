@@ -60,8 +60,9 @@ class Checkpointer:
         try:
             return read_checkpoint(self.path)
         except UnreadableCheckpoint as exc:
-            raise WgsError(f"cannot read the resume checkpoint ({exc}); "
-                           "rerun without --resume to start the stage over", self.path) from None
+            raise WgsError(
+                f"cannot read the resume checkpoint ({exc}); rerun without --resume to start the stage over", self.path
+            ) from None
 
     def due(self) -> bool:
         return time.monotonic() - self._last >= self.every_s
@@ -153,6 +154,9 @@ def check_interrupt(what: str, step: int, checkpoint: Checkpointer | None, state
     name = signal.Signals(signum).name
     if checkpoint is not None:
         checkpoint.save(state())
-        raise Interrupted(f"{what} stopped after step {step} ({name}); its state is saved: rerun the same command "
-                          "with `wgs --resume ...` to continue", signum)
+        raise Interrupted(
+            f"{what} stopped after step {step} ({name}); its state is saved: rerun the same command "
+            "with `wgs --resume ...` to continue",
+            signum,
+        )
     raise Interrupted(f"{what} stopped after step {step} ({name}); rerun to start the stage over", signum)

@@ -70,20 +70,35 @@ refine_every = 50
 
 
 def wgs_command(ws: Path, scene: Path, cfg: Path, resume: bool, checkpoint_every: float) -> list[str]:
-    return [sys.executable, "-m", "wgs", "-q", "--config", str(cfg), "--checkpoint-every", str(checkpoint_every),
-            *(["--resume"] if resume else []), "-w", str(ws), "all", str(scene)]
+    return [
+        sys.executable,
+        "-m",
+        "wgs",
+        "-q",
+        "--config",
+        str(cfg),
+        "--checkpoint-every",
+        str(checkpoint_every),
+        *(["--resume"] if resume else []),
+        "-w",
+        str(ws),
+        "all",
+        str(scene),
+    ]
 
 
-def run_until_killed(cmd: list[str], ws: Path, stage: str | None, delay_s: float, timeout_s: float = 1800
-                     ) -> int | None:
+def run_until_killed(
+    cmd: list[str], ws: Path, stage: str | None, delay_s: float, timeout_s: float = 1800
+) -> int | None:
     """Start `cmd`; once `stage` has started (its upstream stage finished; None: never kill) wait
     `delay_s` more and SIGKILL it. Returns the exit status, or None when it was killed."""
     rc, _, sent = run_and_signal(cmd, ws, stage, delay_s, signal.SIGKILL, timeout_s)
     return None if sent else rc
 
 
-def run_and_signal(cmd: list[str], ws: Path, stage: str | None, delay_s: float, sig: int, timeout_s: float = 1800
-                   ) -> tuple[int, str, bool]:
+def run_and_signal(
+    cmd: list[str], ws: Path, stage: str | None, delay_s: float, sig: int, timeout_s: float = 1800
+) -> tuple[int, str, bool]:
     """Start `cmd`; once `stage` has started (its upstream stage finished; None: never) wait `delay_s`
     more and send `sig`. Returns the exit status, stderr, and whether the signal was sent."""
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
@@ -155,9 +170,12 @@ def reference_run(out: Path, checkpoint_every: float) -> tuple[Path, Path, Path,
     t0 = time.perf_counter()
     subprocess.run(wgs_command(ref, scene, cfg, False, checkpoint_every), check=True, stdout=subprocess.DEVNULL)
     total = time.perf_counter() - t0
-    stage_s = {st: Workspace(ref).manifest(st)["wall_time_s"] for st in UNASKED}
-    print(f"reference: {total:.1f} s, PSNR {outcome(ref)['psnr']:.4f}; stage wall times (s): "
-          + ", ".join(f"{k} {v:.1f}" for k, v in stage_s.items()), flush=True)
+    stage_s = {st: Workspace(ref).finished(st)["wall_time_s"] for st in UNASKED}
+    print(
+        f"reference: {total:.1f} s, PSNR {outcome(ref)['psnr']:.4f}; stage wall times (s): "
+        + ", ".join(f"{k} {v:.1f}" for k, v in stage_s.items()),
+        flush=True,
+    )
     return scene, cfg, ref, total, stage_s
 
 
@@ -177,18 +195,31 @@ def signal_loop(out: Path, moments: int, seed: int, checkpoint_every: float) -> 
         for m in range(moments):
             ws = out / f"{sig.name}_{m:02d}"
             at = rnd.uniform(0.02, 0.98) * total
-            rc, err, sent = run_and_signal(wgs_command(ws, scene, cfg, False, checkpoint_every), ws,
-                                           list(UNASKED)[0], at, sig)
+            rc, err, sent = run_and_signal(
+                wgs_command(ws, scene, cfg, False, checkpoint_every), ws, list(UNASKED)[0], at, sig
+            )
             lines = [ln for ln in err.splitlines() if ln.strip()]
             stopped_in = running_stage(ws)
             rc2, err2, _ = run_and_signal(wgs_command(ws, scene, cfg, True, checkpoint_every), ws, None, 0.0, sig)
-            trial = {"signal": sig.name, "at_s": round(at, 2), "stopped_in": stopped_in, "exit": rc,
-                     "expected_exit": 128 + sig if sent and stopped_in != "after eval" else 0,
-                     "stderr_lines": len(lines), "stack_trace": any(mark in err for mark in STACK_MARKERS),
-                     "resumed_exit": rc2, "same_metrics": rc2 == 0 and outcome(ws) == expected,
-                     "max_param_diff": max_param_difference(ref, ws) if rc2 == 0 else float("inf")}
-            trial["ok"] = (trial["exit"] == trial["expected_exit"] and (rc == 0 or len(lines) == 1)
-                           and not trial["stack_trace"] and trial["same_metrics"] and trial["max_param_diff"] == 0)
+            trial = {
+                "signal": sig.name,
+                "at_s": round(at, 2),
+                "stopped_in": stopped_in,
+                "exit": rc,
+                "expected_exit": 128 + sig if sent and stopped_in != "after eval" else 0,
+                "stderr_lines": len(lines),
+                "stack_trace": any(mark in err for mark in STACK_MARKERS),
+                "resumed_exit": rc2,
+                "same_metrics": rc2 == 0 and outcome(ws) == expected,
+                "max_param_diff": max_param_difference(ref, ws) if rc2 == 0 else float("inf"),
+            }
+            trial["ok"] = (
+                trial["exit"] == trial["expected_exit"]
+                and (rc == 0 or len(lines) == 1)
+                and not trial["stack_trace"]
+                and trial["same_metrics"]
+                and trial["max_param_diff"] == 0
+            )
             if not trial["ok"]:
                 trial["stderr"] = err[-2000:] + err2[-1000:]
             trials.append(trial)
@@ -204,7 +235,7 @@ def kill_loop(out: Path, fractions: list[float], checkpoint_every: float, hammer
     expected = outcome(ref)
     # every stage, killed at fractions of its reference duration after it started; then a hammer trial
     plan = [(st, f) for st in UNASKED for f in fractions] + [("hammer", hammer_s)]
-    trials = []
+    trials: list[dict[str, Any]] = []
     for k, (target, frac) in enumerate(plan):
         ws = out / f"trial{k:02d}"
         hammer = target == "hammer"
@@ -229,14 +260,26 @@ def kill_loop(out: Path, fractions: list[float], checkpoint_every: float, hammer
             break
         got = outcome(ws)
         diff = max_param_difference(ref, ws)
-        trial = {"trial": k, "target": target, "kill_at": round(frac, 2), "killed_in": killed, "runs": runs,
-                 "resume": resume, "same_metrics": got == expected, "max_param_diff": diff}
+        trial = {
+            "trial": k,
+            "target": target,
+            "kill_at": round(frac, 2),
+            "killed_in": killed,
+            "runs": runs,
+            "resume": resume,
+            "same_metrics": got == expected,
+            "max_param_diff": diff,
+        }
         trials.append(trial)
         print(json.dumps(trial), flush=True)
         shutil.rmtree(ws, ignore_errors=True)
-    summary = {"reference_seconds": round(total, 2), "stage_seconds": stage_s,
-               "kill_points": sum(len(t["killed_in"]) for t in trials), "trials": trials,
-               "all_identical": all(t["same_metrics"] and t["max_param_diff"] == 0 for t in trials)}
+    summary = {
+        "reference_seconds": round(total, 2),
+        "stage_seconds": stage_s,
+        "kill_points": sum(len(t["killed_in"]) for t in trials),
+        "trials": trials,
+        "all_identical": all(t["same_metrics"] and t["max_param_diff"] == 0 for t in trials),
+    }
     (out / "kill_loop.json").write_text(json.dumps(summary, indent=2))
     return summary
 
@@ -245,8 +288,9 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m wgs.stress")
     sub = parser.add_subparsers(dest="what", required=True)
     k = sub.add_parser("kill-loop", help="SIGKILL `wgs all` at points spread over every stage, rerun, compare")
-    k.add_argument("--fractions", default="0.2,0.6,0.95",
-                   help="kill points per stage, as fractions of its reference duration")
+    k.add_argument(
+        "--fractions", default="0.2,0.6,0.95", help="kill points per stage, as fractions of its reference duration"
+    )
     k.add_argument("--checkpoint-every", type=float, default=0.5)
     k.add_argument("--hammer-s", type=float, default=6.0, help="kill interval of the last trial")
     k.add_argument("--out", type=Path, default=None)
@@ -270,8 +314,10 @@ def main(argv: list[str] | None = None) -> None:
     for t in summary["trials"]:
         for s in t["killed_in"]:
             by_stage[s] = by_stage.get(s, 0) + 1
-    print(f"kill points: {summary['kill_points']} ({', '.join(f'{s} {n}' for s, n in by_stage.items())}); "
-          f"all results identical to the uninterrupted run: {summary['all_identical']}")
+    print(
+        f"kill points: {summary['kill_points']} ({', '.join(f'{s} {n}' for s, n in by_stage.items())}); "
+        f"all results identical to the uninterrupted run: {summary['all_identical']}"
+    )
     if not summary["all_identical"]:
         sys.exit(1)
 

@@ -16,13 +16,16 @@ from __future__ import annotations
 import math
 import os
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, MutableMapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
 
 ENV = "WGS_THREADS"
 # thread counts read once when a runtime starts: set (unless exported) before torch / numba start
 COUNT_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS")
+
+T = TypeVar("T")
 
 
 def cgroup_quota(root: Path = Path("/sys/fs/cgroup")) -> float | None:
@@ -33,9 +36,9 @@ def cgroup_quota(root: Path = Path("/sys/fs/cgroup")) -> float | None:
     except (OSError, ValueError):
         pass
     try:
-        quota = int((root / "cpu" / "cpu.cfs_quota_us").read_text())
-        period = int((root / "cpu" / "cpu.cfs_period_us").read_text())
-        return quota / period if quota > 0 and period > 0 else None
+        quota_us = int((root / "cpu" / "cpu.cfs_quota_us").read_text())
+        period_us = int((root / "cpu" / "cpu.cfs_period_us").read_text())
+        return quota_us / period_us if quota_us > 0 and period_us > 0 else None
     except (OSError, ValueError):
         return None
 
@@ -68,9 +71,10 @@ def thread_count(requested: int | None = None) -> int:
     return requested if requested is not None else available_cores()
 
 
-def set_runtime_defaults(env: dict[str, str] | None = None) -> None:
+def set_runtime_defaults(env: MutableMapping[str, str] | None = None) -> None:
     """Thread counts for runtimes that read them only when they start (user exports win)."""
-    env = os.environ if env is None else env
+    if env is None:
+        env = os.environ
     try:
         n = str(thread_count())
     except Exception:  # a bad WGS_THREADS: `configure` reports it as one error line
@@ -140,7 +144,7 @@ def set_pools(n: int) -> None:
     try:
         import numba
 
-        numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
+        numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))  # type: ignore[attr-defined]
     except (ImportError, ValueError):
         pass
 
@@ -189,8 +193,9 @@ def _indexed_call(task: tuple[int, Callable, tuple]) -> tuple[int, object]:
     return i, fn(*job)
 
 
-def map_in_processes(fn: Callable, jobs: list[tuple], workers: int, quiet: bool = True
-                     ) -> Iterator[tuple[int, object]]:
+def map_in_processes(
+    fn: Callable[..., T], jobs: list[tuple], workers: int, quiet: bool = True
+) -> Iterator[tuple[int, T]]:
     """(index, fn(*job)) for every job, in the order they finish: here when `workers` <= 1 (with
     this process's threads), else in `workers` spawned processes of one thread each (`quiet`: their
     console output off, since the children's progress bars would interleave).
@@ -228,11 +233,16 @@ def describe() -> dict[str, object]:
     import numba
     import torch
 
+    layer: str
     try:
         layer = numba.threading_layer()
     except ValueError:  # no parallel function ran yet
-        layer = f"{numba.config.THREADING_LAYER} (not started)"
-    return {"cores": available_cores(), "torch_threads": torch.get_num_threads(),
-            "numba_threads": numba.get_num_threads(), "numba_layer": layer,
-            "adaptive": bool(_governor and _governor.adaptive),
-            "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS")}
+        layer = f"{numba.config.THREADING_LAYER} (not started)"  # type: ignore[attr-defined]
+    return {
+        "cores": available_cores(),
+        "torch_threads": torch.get_num_threads(),
+        "numba_threads": numba.get_num_threads(),
+        "numba_layer": layer,
+        "adaptive": bool(_governor and _governor.adaptive),
+        "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS"),
+    }

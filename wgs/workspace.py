@@ -129,6 +129,13 @@ class Workspace:
             return None
         return data if isinstance(data, dict) and data.get("status") == "done" else None
 
+    def finished(self, stage: str) -> dict[str, Any]:
+        """The manifest of a stage that must have finished (InputError naming its folder otherwise)."""
+        m = self.manifest(stage)
+        if m is None:
+            raise InputError(f"the {stage} stage has not finished here", self.stage_dir(stage))
+        return m
+
     def upstream_fingerprints(self, stage: str) -> dict[str, str | None]:
         out: dict[str, str | None] = {}
         for up in UPSTREAM[stage]:
@@ -137,8 +144,15 @@ class Workspace:
         return out
 
     def stage_fingerprint(self, stage: str, config: dict[str, Any], extra: Any = None) -> str:
-        return fingerprint({"stage": stage, "config": config, "upstream": self.upstream_fingerprints(stage),
-                            "extra": extra, "version": __version__})
+        return fingerprint(
+            {
+                "stage": stage,
+                "config": config,
+                "upstream": self.upstream_fingerprints(stage),
+                "extra": extra,
+                "version": __version__,
+            }
+        )
 
     def status(self, stage: str, fp: str | None = None) -> str:
         """'missing', 'stale' (inputs or config changed) or 'fresh'."""
@@ -151,8 +165,9 @@ class Workspace:
             return "stale"
         return "fresh"
 
-    def begin(self, stage: str, config: dict[str, Any], extra: Any = None, force: bool = False,
-              requires: tuple[str, ...] = ()) -> str | None:
+    def begin(
+        self, stage: str, config: dict[str, Any], extra: Any = None, force: bool = False, requires: tuple[str, ...] = ()
+    ) -> str | None:
         """Call under the lock: the fingerprint to run the stage with, or None when it is fresh."""
         from .progress import log
 
@@ -162,8 +177,9 @@ class Workspace:
             return None
         for req in requires:
             if self.manifest(req) is None:
-                raise InputError(f"the {COMMANDS[req]} stage has not run: run `wgs {COMMANDS[req]}` first",
-                                 self.stage_dir(req))
+                raise InputError(
+                    f"the {COMMANDS[req]} stage has not run: run `wgs {COMMANDS[req]}` first", self.stage_dir(req)
+                )
         return fp
 
     # -- locking -------------------------------------------------------------------------------
@@ -184,7 +200,9 @@ class Workspace:
                 if holder is not None and _lock_alive(holder):
                     raise WorkspaceLocked(
                         f"workspace is in use by pid {holder.get('pid')} on {holder.get('host')} "
-                        f"since {holder.get('started')}", self.root) from None
+                        f"since {holder.get('started')}",
+                        self.root,
+                    ) from None
                 with contextlib.suppress(FileNotFoundError):
                     path.unlink()  # stale lock from a dead process
                 continue
@@ -242,8 +260,10 @@ class Workspace:
         if rdir.exists():
             if self.resume and old == fp:
                 saved = any(rdir.glob("*.pt"))
-                log(f"{COMMANDS[stage]}: resuming " + ("from the saved state" if saved else
-                                                       "(keeping the files written before the interruption)"))
+                log(
+                    f"{COMMANDS[stage]}: resuming "
+                    + ("from the saved state" if saved else "(keeping the files written before the interruption)")
+                )
                 (rdir / "out").mkdir(parents=True, exist_ok=True)
                 return rdir / "out"
             if not self.resume and any(rdir.glob("*.pt")):
@@ -256,8 +276,15 @@ class Workspace:
         return rdir / "out"
 
     # -- running a stage -------------------------------------------------------------------------
-    def run_stage(self, stage: str, settings: Any, extra: Any, force: bool, body: Callable[[StageRun], str],
-                  requires: tuple[str, ...] | None = None) -> bool:
+    def run_staged(
+        self,
+        stage: str,
+        settings: Any,
+        extra: Any,
+        force: bool,
+        body: Callable[[StageRun], str],
+        requires: tuple[str, ...] | None = None,
+    ) -> bool:
         """Every stage's runner: under the lock, skip the stage when it is fresh, check that the stages
         it reads have run (`requires`, default its registry upstream), run body(run) in the staging
         folder and swap it in with the manifest; body returns the line to log. Returns False when

@@ -8,15 +8,16 @@ with the real masks' rule applied to the strict hull. No training: silhouettes o
 S_TAG names the workspace under BENCH_ROOT/OBJECT/ whose repair stage carved with S alone;
 V_FOLDER defaults to the shipped V.
 """
+
 import sys
 from pathlib import Path
 
 from wgs.models.storage import load_model
-from wgs.prior import WEIGHTS_V
 from wgs.scene.dataset import load_prepared
 from wgs.shape.carve import keep_real_coverage
 from wgs.shape.hull import load_grid, silhouette, visual_hull_grid
 from wgs.shape.volume import occupied_probability
+from wgs.weights import WEIGHTS_V
 from wgs.workspace import Workspace
 
 OBJECTS = ("common-3d-test-models-cow", "common-3d-test-models-teapot", "common-3d-test-models-rocker-arm")

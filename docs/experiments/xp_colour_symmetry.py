@@ -4,6 +4,7 @@ hits (photos and their mirror images), a point counts where another photo's hull
 
     python docs/experiments/xp_colour_symmetry.py WS   # a workspace after `wgs prepare` with the mirror used
 """
+
 import sys
 
 import torch
@@ -58,5 +59,7 @@ for i in range(len(photos)):
             seen, other = look_up(j, target)
             out.append((colour[seen] - other[seen]).abs().mean(-1))
 same, mirrored = torch.cat(same), torch.cat(mirrored)
-print(f"{sys.argv[1]}: mean colour difference, same point {same.mean():.4f} (n {len(same)}), mirrored point "
-      f"{mirrored.mean():.4f} (n {len(mirrored)}), ratio {mirrored.mean() / same.mean():.2f}")
+print(
+    f"{sys.argv[1]}: mean colour difference, same point {same.mean():.4f} (n {len(same)}), mirrored point "
+    f"{mirrored.mean():.4f} (n {len(mirrored)}), ratio {mirrored.mean() / same.mean():.2f}"
+)

@@ -3,6 +3,7 @@
 
     python docs/experiments/xp_cuda_parity.py
 """
+
 import time
 
 import torch
@@ -25,11 +26,13 @@ def scene(n, dev, dt, seed=0):
         t.requires_grad_(True)
     return ts
 
+
 def run(dev, dt, n=2000, backend="torch"):
     m, q, s, o, c, v, K = scene(n, dev, dt)
     rgb, a, _ = rasterize(m, q, s, o, c, v, K, 200, 200, backend=backend)
     (rgb.square().sum() + a.sum()).backward()
     return rgb.detach().cpu().double(), a.detach().cpu().double(), [t.grad.cpu().double() for t in (m, q, s, o, c)]
+
 
 def timed(dev, n, backend, repeats):
     for _ in range(3):
@@ -53,21 +56,29 @@ for dt in (torch.float64, torch.float32):
     gpu = run(torch.device("cuda"), dt)
     pairs = zip([gpu[0], gpu[1], *gpu[2]], [cpu[0], cpu[1], *cpu[2]], strict=True)
     err = [float((x - y).abs().max() / (y.abs().max() + 1e-12)) for x, y in pairs]
-    print(f"cuda {dt} vs cpu float64, max rel error rgb alpha d_means d_quats d_scales d_opac d_colors:",
-          " ".join(f"{e:.1e}" for e in err))
+    print(
+        f"cuda {dt} vs cpu float64, max rel error rgb alpha d_means d_quats d_scales d_opac d_colors:",
+        " ".join(f"{e:.1e}" for e in err),
+    )
 backends = ["torch"]
 try:
     t0 = time.perf_counter()
     run(torch.device("cuda"), torch.float32, 100, "gsplat")  # gsplat compiles its kernels on first use
     print(f"gsplat ready in {time.perf_counter() - t0:.0f} s")
     backends.append("gsplat")
-    ref, ours = run(torch.device("cuda"), torch.float32, 2000, "torch"), run(torch.device("cuda"), torch.float32, 2000,
-                                                                              "gsplat")
-    print("gsplat vs torch reference (float32), max abs difference rgb alpha:",
-          f"{float((ref[0] - ours[0]).abs().max()):.1e} {float((ref[1] - ours[1]).abs().max()):.1e}")
+    ref, ours = (
+        run(torch.device("cuda"), torch.float32, 2000, "torch"),
+        run(torch.device("cuda"), torch.float32, 2000, "gsplat"),
+    )
+    print(
+        "gsplat vs torch reference (float32), max abs difference rgb alpha:",
+        f"{float((ref[0] - ours[0]).abs().max()):.1e} {float((ref[1] - ours[1]).abs().max()):.1e}",
+    )
 except Exception as exc:  # not installed, or its kernels did not build
     print(f"gsplat unavailable: {exc!r}"[:400])
 for backend in backends:
     for n in (15000, 50000):
-        print(f"cuda {backend} 200x200 {n} Gaussians forward+backward: "
-              f"{timed(torch.device('cuda'), n, backend, 20):.1f} ms")
+        print(
+            f"cuda {backend} 200x200 {n} Gaussians forward+backward: "
+            f"{timed(torch.device('cuda'), n, backend, 20):.1f} ms"
+        )

@@ -8,6 +8,7 @@ pixels of intermediate opacity (0.1-0.9) per 100 object pixels, rendered and tru
 
 STAGE: fine (default) or coarse; EVERY: score every k-th test view (default 2).
 """
+
 import math
 import sys
 from pathlib import Path
@@ -36,8 +37,9 @@ if __name__ == "__main__":
     scene = load_prepared(ws.output("scene", "prepared"), load_test_images=True)
     bg, dev = background_for(scene), torch.device("cpu")
     splats, _ = load_checkpoint(ws.output(stage, "model"), scene.norm, dev)
-    rows: dict[str, list[float]] = {k: [] for k in ("psnr", "no_excess", "no_shape_error", "outside_opaque",
-                                                     "outside_faint", "near_outline")}
+    rows: dict[str, list[float]] = {
+        k: [] for k in ("psnr", "no_excess", "no_shape_error", "outside_opaque", "outside_faint", "near_outline")
+    }
     excess, missed, soft_render, soft_true, area = np.zeros(BINS + 1), np.zeros(BINS + 1), 0, 0, 0
     for f in scene.test[::every]:
         rgb, alpha = render_frame(splats, f, dev, bg)
@@ -63,5 +65,7 @@ if __name__ == "__main__":
         print(f"{k}: {sum(v) / len(v):.4f}")
     print("excess by distance 1..7+ px (% of the true area):", np.round(100 * excess[1:] / area, 2).tolist())
     print("missed by depth 1..7+ px (% of the true area):", np.round(100 * missed[1:] / area, 2).tolist())
-    print(f"intermediate opacity per 100 object pixels: rendered {100 * soft_render / area:.2f}, "
-          f"true {100 * soft_true / area:.2f}")
+    print(
+        f"intermediate opacity per 100 object pixels: rendered {100 * soft_render / area:.2f}, "
+        f"true {100 * soft_true / area:.2f}"
+    )

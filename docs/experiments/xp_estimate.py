@@ -8,6 +8,7 @@ queue writes them) also the whole command's wall time.
 
     python xp_estimate.py [--times TIMES] WORKSPACE...
 """
+
 import argparse
 import json
 from pathlib import Path
@@ -27,8 +28,10 @@ def one(ws: Workspace, wall: float | None) -> dict:
     cal = run["calibration"]
     if "raster_all" in cal:  # a calibration of the rasterizer alone: the loss's time added (2-core CPU, quiet)
         loss = LOSS_2_CORES
-        cal = {**{k: v for k, v in cal.items() if k not in ("raster_all", "raster_one")},
-               "raster": (cal["raster_all"][0] + loss[0], cal["raster_all"][1] + loss[1])}
+        cal = {
+            **{k: v for k, v in cal.items() if k not in ("raster_all", "raster_one")},
+            "raster": (cal["raster_all"][0] + loss[0], cal["raster_all"][1] + loss[1]),
+        }
     cal = Calibration(**{**cal, "raster": tuple(cal["raster"])})
     sc = run["scene"]
     cfgs = {t: recorded_config(ws, NAME[t]) for t in TABLES}
@@ -43,10 +46,16 @@ def one(ws: Workspace, wall: float | None) -> dict:
     if res.is_file():
         r = json.loads(res.read_text())
         quality = {"gc": r["coarse"]["psnr"], "gf": r["psnr"], "iou": r.get("silhouette_iou")}
-    return {"quality": quality, "workspace": ws.root.name, "size": f"{sc['width']}x{sc['height']}",
-            "budget_s": run.get("budget_s"),
-            "stages": {t: {"printed": printed.get(t), "now": now[t], "actual": actual[t]} for t in shown},
-            "after_prepare": tot, "prepare_s": actual["prepare"], "wall_s": wall}
+    return {
+        "quality": quality,
+        "workspace": ws.root.name,
+        "size": f"{sc['width']}x{sc['height']}",
+        "budget_s": run.get("budget_s"),
+        "stages": {t: {"printed": printed.get(t), "now": now[t], "actual": actual[t]} for t in shown},
+        "after_prepare": tot,
+        "prepare_s": actual["prepare"],
+        "wall_s": wall,
+    }
 
 
 def main() -> None:
@@ -60,30 +69,41 @@ def main() -> None:
             name, _, wall = line.split()
             walls[name] = float(wall.split("=")[1])
     rows = [one(Workspace(p), walls.get(p.name)) for p in a.workspaces]
-    print("| workspace | size | budget (s) | estimate printed (s) | model now (s) | the stages took (s) | "
-          "printed / took | prepare (s) | `wgs all` wall (s) | (prepare + printed) / wall |")
+    print(
+        "| workspace | size | budget (s) | estimate printed (s) | model now (s) | the stages took (s) | "
+        "printed / took | prepare (s) | `wgs all` wall (s) | (prepare + printed) / wall |"
+    )
     print("| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
     for r in rows:
         t, wall = r["after_prepare"], r["wall_s"]
         whole = f"{(r['prepare_s'] + t['printed']) / wall:.2f}" if wall else ""
-        print(f"| {r['workspace']} | {r['size']} | {r['budget_s'] or ''} | {t['printed']:.0f} | {t['now']:.0f} | "
-              f"{t['actual']:.0f} | {t['printed'] / t['actual']:.2f} | {r['prepare_s']:.0f} | "
-              f"{f'{wall:.0f}' if wall else ''} | {whole} |")
+        print(
+            f"| {r['workspace']} | {r['size']} | {r['budget_s'] or ''} | {t['printed']:.0f} | {t['now']:.0f} | "
+            f"{t['actual']:.0f} | {t['printed'] / t['actual']:.2f} | {r['prepare_s']:.0f} | "
+            f"{f'{wall:.0f}' if wall else ''} | {whole} |"
+        )
     budgeted = [r for r in rows if r["budget_s"] and r["wall_s"]]
     if budgeted:
-        print("\n| workspace | budget (min) | working size | `wgs all` wall (s) | wall / budget | G_c -> G_f PSNR (dB) "
-              "| G_f silhouette IoU |")
+        print(
+            "\n| workspace | budget (min) | working size | `wgs all` wall (s) | wall / budget | G_c -> G_f PSNR (dB) "
+            "| G_f silhouette IoU |"
+        )
         print("| --- | ---: | --- | ---: | ---: | ---: | ---: |")
         for r in budgeted:
             q = r["quality"]
-            print(f"| {r['workspace']} | {r['budget_s'] / 60:.0f} | {r['size']} | {r['wall_s']:.0f} | "
-                  f"{r['wall_s'] / r['budget_s']:.2f} | {q.get('gc', 0):.2f} -> {q.get('gf', 0):.2f} | "
-                  f"{q.get('iou') or 0:.3f} |")
+            print(
+                f"| {r['workspace']} | {r['budget_s'] / 60:.0f} | {r['size']} | {r['wall_s']:.0f} | "
+                f"{r['wall_s'] / r['budget_s']:.2f} | {q.get('gc', 0):.2f} -> {q.get('gf', 0):.2f} | "
+                f"{q.get('iou') or 0:.3f} |"
+            )
     print()
     for r in rows:
         stages = r["stages"].items()
-        print(r["workspace"], "printed/now/took:", " ".join(f"{k} {v['printed']}/{v['now']}/{v['actual']:.1f}"
-                                                         for k, v in stages))
+        print(
+            r["workspace"],
+            "printed/now/took:",
+            " ".join(f"{k} {v['printed']}/{v['now']}/{v['actual']:.1f}" for k, v in stages),
+        )
 
 
 if __name__ == "__main__":

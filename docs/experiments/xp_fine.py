@@ -1,6 +1,7 @@
 """Fine stage only on a base workspace's stages (symlinked), with overrides; G_f PSNR and
 silhouette IoU at all test views.
 usage: python xp_fine.py BASE TAG '{"iterations": 2500}' [REPAIR_DIR]"""
+
 import json
 import sys
 import time
@@ -39,8 +40,14 @@ if __name__ == "__main__":
     t0 = time.perf_counter()
     run_stage("fine", ws, resolve("fine", cli=over), StageEnv(torch.device("cpu"), seed), force=True)
     secs = time.perf_counter() - t0
-    res = {"tag": tag, "over": over, "seed": seed, "repair": str(repair), **test_scores(ws, "fine"),
-           "fine_s": round(secs, 1)}
+    res = {
+        "tag": tag,
+        "over": over,
+        "seed": seed,
+        "repair": str(repair),
+        **test_scores(ws, "fine"),
+        "fine_s": round(secs, 1),
+    }
     print(json.dumps(res), flush=True)
     with open("fine_results.jsonl", "a") as fh:
         fh.write(json.dumps(res) + "\n")

@@ -1,4 +1,5 @@
 """Helpers for the experiment scripts (not part of wgs)."""
+
 import dataclasses
 from pathlib import Path
 
@@ -12,8 +13,9 @@ from wgs.scene.dataset import composite, load_prepared
 from wgs.stages.shared import ensemble_repair, initial_splats
 
 
-def train_subset(scene_dir: str, keep: list[int], seed: int, out: str, overrides: dict | None = None,
-                 hull_all: bool = False) -> str:
+def train_subset(
+    scene_dir: str, keep: list[int], seed: int, out: str, overrides: dict | None = None, hull_all: bool = False
+) -> str:
     """One coarse model on the training views `keep` (visual hull from those views, or all: hull_all)."""
     scene = load_prepared(Path(scene_dir))
     sub = dataclasses.replace(scene, train=[scene.train[i] for i in keep])

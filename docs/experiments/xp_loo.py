@@ -1,6 +1,7 @@
 """Leave-one-out pairs at the object's own novel poses: 3-view models' renders -> the 4-view
 ensemble's mean render, D fine-tuned on them (+ the ORM pairs); references scored at 40 test poses.
 usage: python xp_loo.py WS OUT [steps] [loo|loo+orm] [poses] [hull4]"""
+
 import json
 import shutil
 import sys
@@ -35,8 +36,11 @@ if __name__ == "__main__":
     sdir = ws.stage_dir("scene")
     scene = load_prepared(sdir, load_test_images=True)
     n = len(scene.train)
-    jobs = [(str(sdir), [i for i in range(n) if i != j], 100 + j, str(out / f"loo_{j}.pt"), None, hull_all)
-            for j in range(n) if not (out / f"loo_{j}.pt").is_file()]
+    jobs = [
+        (str(sdir), [i for i in range(n) if i != j], 100 + j, str(out / f"loo_{j}.pt"), None, hull_all)
+        for j in range(n)
+        if not (out / f"loo_{j}.pt").is_file()
+    ]
     t0 = time.perf_counter()
     for _ in map_in_processes(train_subset, jobs, 2):
         pass
@@ -56,17 +60,20 @@ if __name__ == "__main__":
                     r = render_frame(m, f, dev, bg)[0]
                     clean.append(ll_t[0])
                     bad.append(dwt2(r.permute(2, 0, 1)[None].double(), 1)[0].float()[0])
-        torch.save({"clean": to_model(torch.stack(clean), "wavelet"), "bad": to_model(torch.stack(bad), "wavelet")},
-                   pairs_path)
+        torch.save(
+            {"clean": to_model(torch.stack(clean), "wavelet"), "bad": to_model(torch.stack(bad), "wavelet")}, pairs_path
+        )
     p = torch.load(pairs_path)
     lc, lb = p["clean"], p["bad"]
     oc, ob, _ = load_pairs(ws.output("mask_data", "index"), "wavelet", 1)
-    print(f"pairs: LOO {lc.shape[0]}, ORM {oc.shape[0]}; LOO identity MSE {float((lc - lb).pow(2).mean()):.5f}",
-          flush=True)
+    print(
+        f"pairs: LOO {lc.shape[0]}, ORM {oc.shape[0]}; LOO identity MSE {float((lc - lb).pow(2).mean()):.5f}",
+        flush=True,
+    )
     gen = torch.Generator().manual_seed(0)
     perm = torch.randperm(lc.shape[0], generator=gen)
     hold = perm[: lc.shape[0] // 8]
-    tr = perm[lc.shape[0] // 8:]
+    tr = perm[lc.shape[0] // 8 :]
     if mix == "loo":
         c, b = lc[tr], lb[tr]
     else:
@@ -75,8 +82,11 @@ if __name__ == "__main__":
     start = ws.stage_dir("finetune")
     t0 = time.perf_counter()
     model, meta, curve = finetune_prior_d(fcfg, start, c, b, lc[hold], lb[hold], dev, gen)
-    print(f"finetune {time.perf_counter() - t0:.0f} s; held-out LOO MSE {curve['bar']:.5f} -> "
-          f"{curve['best']:.5f} (stopped {curve['stopped_at']})", flush=True)
+    print(
+        f"finetune {time.perf_counter() - t0:.0f} s; held-out LOO MSE {curve['bar']:.5f} -> "
+        f"{curve['best']:.5f} (stopped {curve['stopped_at']})",
+        flush=True,
+    )
     folder = out / f"ft_{mix}_{steps}_{npose}"
     shutil.rmtree(folder, ignore_errors=True)
     save_model(folder / "D", model, meta.to_config())

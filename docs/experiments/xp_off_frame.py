@@ -11,6 +11,7 @@ views: whether a mirror plane is taken depends on the hull too, and would decide
 
 --arc: the training photos' spread of azimuths in degrees (make_scene's CLOSE_UP_ARC by default).
 """
+
 import argparse
 import json
 import math
@@ -30,8 +31,12 @@ from wgs.scene.convention import c2w_opengl_to_w2c_opencv, focal_from_fov  # noq
 from wgs.scene.dataset import Frame, load_prepared  # noqa: E402
 from wgs.shape.scores import mean_scores, silhouette_scores  # noqa: E402
 
-RULES = {"object": ("object", None), "background": ("background", None), "abstain, 2 views": ("abstain", 2),
-         "abstain": ("abstain", 3)}
+RULES = {
+    "object": ("object", None),
+    "background": ("background", None),
+    "abstain, 2 views": ("abstain", 2),
+    "abstain": ("abstain", 3),
+}
 
 
 def set_rule(name: str) -> None:
@@ -53,14 +58,23 @@ def around(scene, seed: int, n: int = 24, size: int = 128) -> list[Frame]:
     for i in range(n):  # a Fibonacci sphere
         z = 1 - 2 * (i + 0.5) / n
         a = i * math.pi * (3 - math.sqrt(5))
-        eye = make_scene.STAND_BACK_DISTANCE * np.array([math.sqrt(1 - z * z) * math.cos(a),
-                                                         math.sqrt(1 - z * z) * math.sin(a), z])
+        eye = make_scene.STAND_BACK_DISTANCE * np.array(
+            [math.sqrt(1 - z * z) * math.cos(a), math.sqrt(1 - z * z) * math.sin(a), z]
+        )
         c2w = make_scene.look_at_c2w(eye)
         mask = make_scene.render(parts, c2w, size)[..., 3] > 0.5
         assert not (mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any())
         w2c = scene.norm.w2c_to_normalised(c2w_opengl_to_w2c_opencv(c2w))
-        out.append(Frame(K, torch.tensor(w2c, dtype=torch.float32), size, size, name=f"a{i}",
-                         mask=torch.from_numpy(mask.astype(np.float32))))
+        out.append(
+            Frame(
+                K,
+                torch.tensor(w2c, dtype=torch.float32),
+                size,
+                size,
+                name=f"a{i}",
+                mask=torch.from_numpy(mask.astype(np.float32)),
+            )
+        )
     return out
 
 
@@ -70,10 +84,12 @@ def volume(grid) -> float:
 
 def coarse_psnr(ws: Path, scene_dir: Path, rule: str) -> float:
     """G_c's mean test PSNR with the coarse stage's hull init under `rule` (in a fresh process)."""
-    code = (f"import sys; sys.argv = ['wgs']; sys.path.insert(0, {str(Path(__file__).parent)!r}); "
-            f"import xp_off_frame as x; x.set_rule({rule!r}); from wgs.cli import main; "
-            f"main(['-q', '-w', {str(ws)!r}, 'prepare', {str(scene_dir)!r}, '--mirror', 'none']); "
-            f"main(['-q', '-w', {str(ws)!r}, 'coarse', '--preset', 'fast', '--ensemble', '1'])")
+    code = (
+        f"import sys; sys.argv = ['wgs']; sys.path.insert(0, {str(Path(__file__).parent)!r}); "
+        f"import xp_off_frame as x; x.set_rule({rule!r}); from wgs.cli import main; "
+        f"main(['-q', '-w', {str(ws)!r}, 'prepare', {str(scene_dir)!r}, '--mirror', 'none']); "
+        f"main(['-q', '-w', {str(ws)!r}, 'coarse', '--preset', 'fast', '--ensemble', '1'])"
+    )
     subprocess.run([sys.executable, "-c", code], check=True)
     from wgs.gaussians.splats import load_checkpoint
     from wgs.gaussians.trainer import render_frame
@@ -86,8 +102,10 @@ def coarse_psnr(ws: Path, scene_dir: Path, rule: str) -> float:
     scene = load_prepared(w.output("scene", "prepared"), load_test_images=True)
     bg = background_for(scene)
     splats, _ = load_checkpoint(w.output("coarse", "model"), scene.norm, torch.device("cpu"))
-    vals = [psnr(render_frame(splats, f, torch.device("cpu"), bg)[0].clamp(0, 1), composite(f.image, f.mask, bg))
-            for f in scene.test]
+    vals = [
+        psnr(render_frame(splats, f, torch.device("cpu"), bg)[0].clamp(0, 1), composite(f.image, f.mask, bg))
+        for f in scene.test
+    ]
     return float(statistics.fmean(float(v) for v in vals))
 
 
@@ -106,8 +124,10 @@ def main() -> None:
             make_scene.make_scene(scene_dir, seed, 128, 4, 8, close_up=True)
         ws = a.cache / f"wsnm_{a.arc:g}_{seed}"
         if not (ws / "scene").is_dir():
-            subprocess.run([sys.executable, "-m", "wgs", "-q", "-w", str(ws), "prepare", str(scene_dir), "--mirror",
-                            "none"], check=True)
+            subprocess.run(
+                [sys.executable, "-m", "wgs", "-q", "-w", str(ws), "prepare", str(scene_dir), "--mirror", "none"],
+                check=True,
+            )
         scene = load_prepared(ws / "scene", load_test_images=True)
         photos = scene.photos
         reference = volume(hull.visual_hull_grid(around(scene, seed), 96, tolerate=0))
@@ -115,11 +135,17 @@ def main() -> None:
             set_rule(name)
             strict = hull.visual_hull_grid(photos, 96, tolerate=0)
             tolerant = hull.visual_hull_grid(photos, 96)
-            test = mean_scores({f.name: silhouette_scores(hull.silhouette(strict, f)[0], f.mask > 0.5)
-                                for f in scene.test})
-            row = {"seed": seed, "rule": name, "strict_volume_x": volume(strict) / reference,
-                   "tolerant_volume_x": volume(tolerant) / reference, "strict_test_iou": test["iou"],
-                   "strict_test_missed": test["missed"]}
+            test = mean_scores(
+                {f.name: silhouette_scores(hull.silhouette(strict, f)[0], f.mask > 0.5) for f in scene.test}
+            )
+            row = {
+                "seed": seed,
+                "rule": name,
+                "strict_volume_x": volume(strict) / reference,
+                "tolerant_volume_x": volume(tolerant) / reference,
+                "strict_test_iou": test["iou"],
+                "strict_test_missed": test["missed"],
+            }
             if a.train:
                 tag = name.replace(" ", "_").replace(",", "")
                 row["gc_psnr"] = coarse_psnr(a.cache / f"wsnm_{a.arc:g}_{seed}_{tag}", scene_dir, name)

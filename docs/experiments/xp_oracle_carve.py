@@ -7,6 +7,7 @@ the `no-prior` workspace (`--mirror none --no-carve`) of `python -m wgs.bench sh
 writes BENCH_ROOT/OBJECT/oracle-TAG and prints G_f's PSNR and silhouette IoU. The oracle sees the
 test views' masks, so its figures bound what any S could give this carving; they are not a result.
 """
+
 import json
 import shutil
 import sys
@@ -50,8 +51,20 @@ if __name__ == "__main__":
         shutil.copytree(root / name / "no-prior", ws)
     repair.shape_models = oracle_predictor(ws, repair.shape_models)
     try:
-        main(["-w", str(ws), *(["--config", config[0]] if config else []), "all", str(root / "scenes" / name),
-              "--views", "4", "--preset", "fast", "--carve"])
+        main(
+            [
+                "-w",
+                str(ws),
+                *(["--config", config[0]] if config else []),
+                "all",
+                str(root / "scenes" / name),
+                "--views",
+                "4",
+                "--preset",
+                "fast",
+                "--carve",
+            ]
+        )
     except SystemExit:
         pass
     res = json.loads(Workspace(ws).output("eval", "results").read_text())

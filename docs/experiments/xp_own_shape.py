@@ -5,6 +5,7 @@ excess and missed area (test masks), what each step chose, and seconds.
 
 Each WORKSPACE holds a prepared scene (`wgs prepare`) whose test views have masks.
 """
+
 import argparse
 import statistics
 from pathlib import Path
@@ -36,5 +37,8 @@ if __name__ == "__main__":
         hull = visual_hull_grid(scene.train, a.resolution, tolerate=0)
         shape, rec = own_shape(hull, scene.photos, params)
         before, after = test_scores(hull, scene.test), test_scores(shape, scene.test)
-        print(f"| {w.name} | {before['iou']:.3f} | {after['iou']:.3f} | {before['excess']:.3f} | {after['excess']:.3f} "
-              f"| {after['missed']:.3f} | {describe(rec)} | {rec['seconds']} |", flush=True)
+        print(
+            f"| {w.name} | {before['iou']:.3f} | {after['iou']:.3f} | {before['excess']:.3f} | {after['excess']:.3f} "
+            f"| {after['missed']:.3f} | {describe(rec)} | {rec['seconds']} |",
+            flush=True,
+        )

@@ -8,6 +8,7 @@ test views.
 
 Prints a table; every run's workspace stays under OUT_DIR (rerunning skips what is done).
 """
+
 import argparse
 import json
 import os
@@ -39,8 +40,12 @@ from wgs.workspace import Workspace  # noqa: E402
 
 
 def wgs(*args: str) -> None:
-    subprocess.run([sys.executable, "-m", "wgs", *args], check=True, stdout=subprocess.DEVNULL,
-                   env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])})
+    subprocess.run(
+        [sys.executable, "-m", "wgs", *args],
+        check=True,
+        stdout=subprocess.DEVNULL,
+        env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])},
+    )
 
 
 def with_fifth(base: Path, out: Path, obj, camera, norm) -> Path:
@@ -69,9 +74,13 @@ def scores(scene_dir: Path, ws: Path) -> dict[str, float]:
     rows = []
     for f in scene.test:
         rgb, alpha = render_frame(splats, f, torch.device("cpu"), bg)
-        rows.append({"hull_iou": silhouette_scores(silhouette(hull, f)[0], f.mask > 0.5)["iou"],
-                     "psnr": psnr(rgb, composite(f.image, f.mask, bg)),
-                     "iou": silhouette_scores(alpha[..., 0] > 0.5, f.mask > 0.5)["iou"]})
+        rows.append(
+            {
+                "hull_iou": silhouette_scores(silhouette(hull, f)[0], f.mask > 0.5)["iou"],
+                "psnr": psnr(rgb, composite(f.image, f.mask, bg)),
+                "iou": silhouette_scores(alpha[..., 0] > 0.5, f.mask > 0.5)["iou"],
+            }
+        )
     return {k: statistics.fmean(r[k] for r in rows) for k in rows[0]}
 
 
@@ -83,12 +92,17 @@ if __name__ == "__main__":
     ap.add_argument("--random", type=int, default=3)
     ap.add_argument("--size", type=int, default=128)
     a = ap.parse_args()
-    print("| object | suggested: sentence | hull IoU | G_c PSNR | G_c IoU | random (median of "
-          f"{a.random}): hull IoU | G_c PSNR | G_c IoU |")
+    print(
+        "| object | suggested: sentence | hull IoU | G_c PSNR | G_c IoU | random (median of "
+        f"{a.random}): hull IoU | G_c PSNR | G_c IoU |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     for kind in a.kinds.split(","):
-        base = make_scene.make_scene(a.out / f"{kind}_4", seed=a.seed, size=a.size, kind=kind, sphere=True) \
-            if not (a.out / f"{kind}_4" / "transforms_train.json").is_file() else a.out / f"{kind}_4"
+        base = (
+            make_scene.make_scene(a.out / f"{kind}_4", seed=a.seed, size=a.size, kind=kind, sphere=True)
+            if not (a.out / f"{kind}_4" / "transforms_train.json").is_file()
+            else a.out / f"{kind}_4"
+        )
         obj = make_scene.make_shape(kind, np.random.default_rng(a.seed))
         ws4 = a.out / f"{kind}_4_ws"
         if not (ws4 / "0_scene").is_dir():
@@ -97,10 +111,19 @@ if __name__ == "__main__":
         record = suggest_view(*loose_voxels(visual_hull_grid(scene.train, 64, tolerate=0)), scene.photos)
         pool = [f for f, _ in sphere_views(scene.photos, CANDIDATES, BELOW_DEG, ABOVE_DEG)]
         picks = random.Random(a.seed).sample(range(len(pool)), a.random)
-        best = scores(with_fifth(base, a.out / f"{kind}_suggested", obj, record["camera"], scene.norm),
-                      a.out / f"{kind}_suggested_ws")
-        rand = [scores(with_fifth(base, a.out / f"{kind}_random{i}", obj, pool[i], scene.norm),
-                       a.out / f"{kind}_random{i}_ws") for i in picks]
+        best = scores(
+            with_fifth(base, a.out / f"{kind}_suggested", obj, record["camera"], scene.norm),
+            a.out / f"{kind}_suggested_ws",
+        )
+        rand = [
+            scores(
+                with_fifth(base, a.out / f"{kind}_random{i}", obj, pool[i], scene.norm), a.out / f"{kind}_random{i}_ws"
+            )
+            for i in picks
+        ]
         med = {k: statistics.median(r[k] for r in rand) for k in rand[0]}
-        print(f"| {kind} | {record['sentence']} | {best['hull_iou']:.3f} | {best['psnr']:.2f} | {best['iou']:.3f} "
-              f"| {med['hull_iou']:.3f} | {med['psnr']:.2f} | {med['iou']:.3f} |", flush=True)
+        print(
+            f"| {kind} | {record['sentence']} | {best['hull_iou']:.3f} | {best['psnr']:.2f} | {best['iou']:.3f} "
+            f"| {med['hull_iou']:.3f} | {med['psnr']:.2f} | {med['iou']:.3f} |",
+            flush=True,
+        )

@@ -8,15 +8,22 @@ import torch
 from ..shape.hull import HullGrid, mask_votes, surface, visual_hull_grid
 
 
-def visual_hull(frames, resolution: int = 96, extent: float = 1.0, max_points: int = 20000,
-                near: float = 0.01, generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+def visual_hull(
+    frames,
+    resolution: int = 96,
+    extent: float = 1.0,
+    max_points: int = 20000,
+    near: float = 0.01,
+    generator: torch.Generator | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Initial points from the training masks' visual hull (`shape.hull.visual_hull_grid`, then
     `hull_points`). Returns points [M, 3] and colours [M, 3]; raises InputError if the hull is empty."""
     return hull_points(visual_hull_grid(frames, resolution, extent, near), frames, max_points, generator, near)
 
 
-def hull_points(grid: HullGrid, frames, max_points: int, generator: torch.Generator | None = None,
-                near: float = 0.01) -> tuple[torch.Tensor, torch.Tensor]:
+def hull_points(
+    grid: HullGrid, frames, max_points: int, generator: torch.Generator | None = None, near: float = 0.01
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Points [M, 3] on the surface of an occupancy grid (the renders see surfaces), jittered within
     their voxel, at most `max_points` of them, and their colours [M, 3]: the mean colour of the
     frames whose masks hold their voxel's centre."""
@@ -29,8 +36,9 @@ def hull_points(grid: HullGrid, frames, max_points: int, generator: torch.Genera
     return pts, mask_votes(frames, centres, near)[1]
 
 
-def random_init(n: int, radius: float = 0.5, generator: torch.Generator | None = None
-                ) -> tuple[torch.Tensor, torch.Tensor]:
+def random_init(
+    n: int, radius: float = 0.5, generator: torch.Generator | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Fallback without masks: points uniform in a ball around the object centre, grey."""
     d = torch.randn(n, 3, generator=generator)
     d = d / d.norm(dim=1, keepdim=True).clamp_min(1e-9)
@@ -60,7 +68,7 @@ def knn_mean_distance_torch(points: torch.Tensor, k: int = 3, chunk: int = 2048)
     k = min(k, n - 1)
     out = []
     for i in range(0, n, chunk):
-        d = torch.cdist(points[i:i + chunk], points)
+        d = torch.cdist(points[i : i + chunk], points)
         out.append(d.topk(k + 1, largest=False).values[:, 1:].mean(dim=1))
     return torch.cat(out)
 

@@ -32,11 +32,20 @@ def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
     ident = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=quats.dtype, device=quats.device)
     q = torch.where(norm > 1e-12, quats / norm.clamp_min(1e-12), ident)
     w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], dim=-1).reshape(*quats.shape[:-1], 3, 3)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(*quats.shape[:-1], 3, 3)
 
 
 def matrix_to_quat(R: torch.Tensor) -> torch.Tensor:
@@ -54,16 +63,23 @@ def matrix_to_quat(R: torch.Tensor) -> torch.Tensor:
         q = [(m[0, 2] - m[2, 0]) / r, (m[0, 1] + m[1, 0]) / r, r, (m[1, 2] + m[2, 1]) / r]
     else:
         q = [(m[1, 0] - m[0, 1]) / r, (m[0, 2] + m[2, 0]) / r, (m[1, 2] + m[2, 1]) / r, r]
-    q = torch.stack(q) / 2
-    return q * torch.sign(q[0]) if q[0] != 0 else q
+    quat = torch.stack(q) / 2
+    return quat * torch.sign(quat[0]) if quat[0] != 0 else quat
 
 
 def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Hamilton product of wxyz quaternions [..., 4] (rotation a after b)."""
     aw, ax, ay, az = a.unbind(-1)
     bw, bx, by, bz = b.unbind(-1)
-    return torch.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-                        aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], -1)
+    return torch.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        -1,
+    )
 
 
 def covariance3d(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
@@ -72,8 +88,17 @@ def covariance3d(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
     return M @ M.transpose(-1, -2)
 
 
-def project_gaussians(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, viewmat: torch.Tensor,
-                      K: torch.Tensor, width: int, height: int, near: float = 0.01, far: float = 1e10) -> Projected:
+def project_gaussians(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    viewmat: torch.Tensor,
+    K: torch.Tensor,
+    width: int,
+    height: int,
+    near: float = 0.01,
+    far: float = 1e10,
+) -> Projected:
     """Project N Gaussians into one pinhole camera.
 
     Args:
@@ -109,8 +134,12 @@ def project_gaussians(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
     means2d = torch.stack([fx * p[:, 0] / zs + cx, fy * p[:, 1] / zs + cy], -1)
     ext = SIGMA_CUT * torch.stack([a, c], -1).clamp_min(0).sqrt()
     # off-screen: the 3-sigma box misses the image
-    on = ((means2d[:, 0] + ext[:, 0] > 0) & (means2d[:, 0] - ext[:, 0] < width)
-          & (means2d[:, 1] + ext[:, 1] > 0) & (means2d[:, 1] - ext[:, 1] < height))
+    on = (
+        (means2d[:, 0] + ext[:, 0] > 0)
+        & (means2d[:, 0] - ext[:, 0] < width)
+        & (means2d[:, 1] + ext[:, 1] > 0)
+        & (means2d[:, 1] - ext[:, 1] < height)
+    )
     valid = valid & on & torch.isfinite(means2d).all(-1)
     vf = valid[:, None]
     return Projected(

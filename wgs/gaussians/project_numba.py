@@ -86,12 +86,22 @@ def _project_forward(means, quats, scales, V, cam, width, height, near, far, out
         Rq, M, S = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
         T, TS = np.empty((2, 3)), np.empty((2, 3))
         px, py, zc, zs, tx, ty, x_cl, y_cl, in_depth, a, b, c = _setup(
-            i, means, quats, scales, V, cam, near, far, Rq, M, S, T, TS)
+            i, means, quats, scales, V, cam, near, far, Rq, M, S, T, TS
+        )
         det = a * c - b * b
         mx, my = fx * px / zs + cx, fy * py / zs + cy
         ex, ey = SIGMA_CUT * math.sqrt(max(a, 0.0)), SIGMA_CUT * math.sqrt(max(c, 0.0))
-        ok = (in_depth and det > 0 and math.isfinite(det) and mx + ex > 0 and mx - ex < width
-              and my + ey > 0 and my - ey < height and math.isfinite(mx) and math.isfinite(my))
+        ok = (
+            in_depth
+            and det > 0
+            and math.isfinite(det)
+            and mx + ex > 0
+            and mx - ex < width
+            and my + ey > 0
+            and my - ey < height
+            and math.isfinite(mx)
+            and math.isfinite(my)
+        )
         out[i, 5] = zc
         if ok:
             out[i, 0], out[i, 1] = mx, my
@@ -112,7 +122,8 @@ def _project_backward(means, quats, scales, V, cam, near, far, visible, g_m, g_c
         Rq, M, S = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
         T, TS = np.empty((2, 3)), np.empty((2, 3))
         px, py, zc, zs, tx, ty, x_cl, y_cl, in_depth, a, b, c = _setup(
-            i, means, quats, scales, V, cam, near, far, Rq, M, S, T, TS)
+            i, means, quats, scales, V, cam, near, far, Rq, M, S, T, TS
+        )
         det = a * c - b * b
         q0, q1, q2 = c / det, -b / det, a / det
         g0, g1, g2 = g_c[i, 0], 0.5 * g_c[i, 1], g_c[i, 2]
@@ -175,12 +186,36 @@ def _project_backward(means, quats, scales, V, cam, near, far, visible, g_m, g_c
                 g_quats[i, k] = 0.0
             continue
         dw = 2 * (-z * dR[0, 1] + y * dR[0, 2] + z * dR[1, 0] - x * dR[1, 2] - y * dR[2, 0] + x * dR[2, 1])
-        dx = 2 * (y * dR[0, 1] + z * dR[0, 2] + y * dR[1, 0] - 2 * x * dR[1, 1] - w * dR[1, 2] + z * dR[2, 0]
-                  + w * dR[2, 1] - 2 * x * dR[2, 2])
-        dy = 2 * (-2 * y * dR[0, 0] + x * dR[0, 1] + w * dR[0, 2] + x * dR[1, 0] + z * dR[1, 2] - w * dR[2, 0]
-                  + z * dR[2, 1] - 2 * y * dR[2, 2])
-        dzq = 2 * (-2 * z * dR[0, 0] - w * dR[0, 1] + x * dR[0, 2] + w * dR[1, 0] - 2 * z * dR[1, 1]
-                   + y * dR[1, 2] + x * dR[2, 0] + y * dR[2, 1])
+        dx = 2 * (
+            y * dR[0, 1]
+            + z * dR[0, 2]
+            + y * dR[1, 0]
+            - 2 * x * dR[1, 1]
+            - w * dR[1, 2]
+            + z * dR[2, 0]
+            + w * dR[2, 1]
+            - 2 * x * dR[2, 2]
+        )
+        dy = 2 * (
+            -2 * y * dR[0, 0]
+            + x * dR[0, 1]
+            + w * dR[0, 2]
+            + x * dR[1, 0]
+            + z * dR[1, 2]
+            - w * dR[2, 0]
+            + z * dR[2, 1]
+            - 2 * y * dR[2, 2]
+        )
+        dzq = 2 * (
+            -2 * z * dR[0, 0]
+            - w * dR[0, 1]
+            + x * dR[0, 2]
+            + w * dR[1, 0]
+            - 2 * z * dR[1, 1]
+            + y * dR[1, 2]
+            + x * dR[2, 0]
+            + y * dR[2, 1]
+        )
         dot = w * dw + x * dx + y * dy + z * dzq
         g_quats[i, 0] = (dw - w * dot) / n
         g_quats[i, 1] = (dx - x * dot) / n
@@ -195,8 +230,18 @@ def _np64(x: torch.Tensor) -> np.ndarray:
 def _camera(K: torch.Tensor, width: int, height: int) -> np.ndarray:
     """fx, fy, cx, cy and the clamp limits of x/z, y/z (1.3x the field of view), as the reference."""
     fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
-    return np.array([fx, fy, cx, cy, (width - cx) / fx + 0.3 * width / fx, cx / fx + 0.3 * width / fx,
-                     (height - cy) / fy + 0.3 * height / fy, cy / fy + 0.3 * height / fy])
+    return np.array(
+        [
+            fx,
+            fy,
+            cx,
+            cy,
+            (width - cx) / fx + 0.3 * width / fx,
+            cx / fx + 0.3 * width / fx,
+            (height - cy) / fy + 0.3 * height / fy,
+            cy / fy + 0.3 * height / fy,
+        ]
+    )
 
 
 class ProjectNumba(torch.autograd.Function):
@@ -224,14 +269,32 @@ class ProjectNumba(torch.autograd.Function):
         gm, gq, gs = np.zeros((n, 3)), np.zeros((n, 4)), np.zeros((n, 3))
         _project_backward(means, quats, scales, V, cam, near, far, visible, g_m, g_c, gm, gq, gs)
         dev = (g_means2d if g_means2d is not None else g_conics).device
-        return (torch.from_numpy(gm).to(dev, dt_m), torch.from_numpy(gq).to(dev, dt_q),
-                torch.from_numpy(gs).to(dev, dt_s), None, None, None, None, None, None)
+        return (
+            torch.from_numpy(gm).to(dev, dt_m),
+            torch.from_numpy(gq).to(dev, dt_q),
+            torch.from_numpy(gs).to(dev, dt_s),
+            None,
+            None,
+            None,
+            None,
+            None,
+            None,
+        )
 
 
-def project_gaussians_numba(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, viewmat: torch.Tensor,
-                            K: torch.Tensor, width: int, height: int, near: float = 0.01, far: float = 1e10
-                            ) -> Projected:
+def project_gaussians_numba(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    viewmat: torch.Tensor,
+    K: torch.Tensor,
+    width: int,
+    height: int,
+    near: float = 0.01,
+    far: float = 1e10,
+) -> Projected:
     """Same arguments and outputs as `project_gaussians` (CPU tensors; viewmat and K get no gradient)."""
-    m2, con, depths, ext, vis = ProjectNumba.apply(means, quats, scales, viewmat, K, int(width), int(height),
-                                                   float(near), float(far))
+    m2, con, depths, ext, vis = ProjectNumba.apply(
+        means, quats, scales, viewmat, K, int(width), int(height), float(near), float(far)
+    )
     return Projected(means2d=m2, conics=con, depths=depths, extents=ext, visible=vis)

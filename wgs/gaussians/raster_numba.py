@@ -6,8 +6,9 @@ over 16x16 tiles (numba prange). A Gaussian is listed in the tiles that its reac
 only the pixels of its box, front to back for the forward, back to front for the backward, with
 the per-pixel state (transmittance, colour sums) in tile arrays. Each (tile, Gaussian) pair owns
 one row of the backward buffer, so threads never write the same memory and the result is
-deterministic; rows are summed per Gaussian with `index_add_`. Kernels are compiled once and
-cached on disk (`cache=True`; `NUMBA_CACHE_DIR` moves the cache).
+deterministic; rows are summed per Gaussian in entry order (`_sum_per_gaussian`). Binning, the
+per-entry copies and those sums run in parallel too. Kernels are compiled once and cached on disk
+(`cache=True`; `NUMBA_CACHE_DIR` moves the cache).
 """
 
 from __future__ import annotations
@@ -66,27 +67,29 @@ def _touches(A, B, C, r2, x0, x1, y0, y1):
     return q <= r2 * 1.0002 + 1e-4
 
 
-@nb.njit(cache=True)
+@nb.njit(parallel=True, cache=True)
 def _bin_tiles(means2d, conics, opacities, extents, order, width, height, tile, boxes):
     """Tile lists: Gaussian ids sorted by tile, front to back within a tile (`order` is sorted).
     A Gaussian goes to the tiles its reach ellipse meets (not every tile of its box); `boxes`
-    [N, 2] receives each Gaussian's half box in px."""
+    [N, 2] receives each Gaussian's half box in px. Also returns, for each Gaussian, its entries
+    in increasing order (`by_gaussian`, `starts` [N + 1]) for the backward's per-Gaussian sums.
+
+    The reach and the ellipse-tile tests run in parallel over Gaussians, each writing its hits into
+    its own slice (one slot per tile of its box); a serial counting sort then puts the hits, in
+    depth order, into their tiles."""
     tiles_x = (width + tile - 1) // tile
     tiles_y = (height + tile - 1) // tile
     n_tiles = tiles_x * tiles_y
     V = order.shape[0]
-    rect = np.empty((V, 4), np.int64)
-    reach = np.empty(V)
-    counts = np.zeros(n_tiles + 1, np.int64)
-    total = 0
-    for j in range(V):
+    N = means2d.shape[0]
+    rect = np.zeros((V, 4), np.int64)
+    box_tiles = np.zeros(V + 1, np.int64)
+    for j in nb.prange(V):
         g = order[j]
         A, B, C = np.float64(conics[g, 0]), np.float64(conics[g, 1]), np.float64(conics[g, 2])
         r2, ex, ey = _reach(A, B, C, np.float64(opacities[g]), extents[g, 0], extents[g, 1])
-        reach[j] = r2
-        boxes[g, 0], boxes[g, 1] = ex, ey
+        boxes[g, 0], boxes[g, 1], boxes[g, 2] = ex, ey, r2
         if r2 < 0.0:
-            rect[j, 0], rect[j, 1], rect[j, 2], rect[j, 3] = 0, 0, 0, 0
             continue
         mx, my = np.float64(means2d[g, 0]), np.float64(means2d[g, 1])
         # pixel centres are at x + 0.5
@@ -99,45 +102,62 @@ def _bin_tiles(means2d, conics, opacities, extents, order, width, height, tile, 
         ty0 = max(0, int(math.floor(lo_y / tile)))
         ty1 = min(tiles_y, int(math.floor(hi_y / tile)) + 1)
         rect[j, 0], rect[j, 1], rect[j, 2], rect[j, 3] = tx0, tx1, ty0, ty1
-        total += max(0, tx1 - tx0) * max(0, ty1 - ty0)
-    # one ellipse-tile test per (Gaussian, tile of its box); the hits, in depth order, then go to
-    # their tiles by a counting sort
-    hit_tile = np.empty(total, np.int64)
-    hit_id = np.empty(total, np.int64)
-    m = 0
+        box_tiles[j + 1] = max(0, tx1 - tx0) * max(0, ty1 - ty0)
     for j in range(V):
+        box_tiles[j + 1] += box_tiles[j]
+    hits = np.empty(box_tiles[V], np.int64)
+    n_hits = np.zeros(V, np.int64)
+    for j in nb.prange(V):
         g = order[j]
         A, B, C = np.float64(conics[g, 0]), np.float64(conics[g, 1]), np.float64(conics[g, 2])
         mx, my = np.float64(means2d[g, 0]), np.float64(means2d[g, 1])
+        m = box_tiles[j]
         for ty in range(rect[j, 2], rect[j, 3]):
             y0 = ty * tile + 0.5 - my
             y1 = min(height, ty * tile + tile) - 0.5 - my
             for tx in range(rect[j, 0], rect[j, 1]):
-                if _touches(A, B, C, reach[j], tx * tile + 0.5 - mx, min(width, tx * tile + tile) - 0.5 - mx, y0, y1):
-                    t = ty * tiles_x + tx
-                    hit_tile[m] = t
-                    hit_id[m] = g
-                    counts[t + 1] += 1
+                if _touches(
+                    A, B, C, boxes[g, 2], tx * tile + 0.5 - mx, min(width, tx * tile + tile) - 0.5 - mx, y0, y1
+                ):
+                    hits[m] = ty * tiles_x + tx
                     m += 1
+        n_hits[j] = m - box_tiles[j]
+    counts = np.zeros(n_tiles + 1, np.int64)
+    per_g = np.zeros(N + 1, np.int64)
+    for j in range(V):
+        per_g[order[j] + 1] = n_hits[j]
+        for q in range(box_tiles[j], box_tiles[j] + n_hits[j]):
+            counts[hits[q] + 1] += 1
     for t in range(n_tiles):
         counts[t + 1] += counts[t]
+    for g in range(N):
+        per_g[g + 1] += per_g[g]
     fill = counts[:-1].copy()
     ids = np.empty(counts[n_tiles], np.int64)
-    for q in range(m):
-        t = hit_tile[q]
-        ids[fill[t]] = hit_id[q]
-        fill[t] += 1
-    return ids, counts
+    for j in range(V):
+        g = order[j]
+        for q in range(box_tiles[j], box_tiles[j] + n_hits[j]):
+            t = hits[q]
+            ids[fill[t]] = g
+            fill[t] += 1
+    # entries of each Gaussian, in increasing entry order
+    fill_g = per_g[:-1].copy()
+    by_gaussian = np.empty(counts[n_tiles], np.int64)
+    for k in range(counts[n_tiles]):
+        g = ids[k]
+        by_gaussian[fill_g[g]] = k
+        fill_g[g] += 1
+    return ids, counts, by_gaussian, per_g
 
 
-@nb.njit(cache=True)
+@nb.njit(parallel=True, cache=True)
 def _gather(ids, means2d, conics, opacities, colors, boxes):
     """Per-entry copies of the Gaussian parameters, so the kernels read memory in order:
     mean x, y, conic a, b, c, opacity, half box x, y, colours."""
     M = ids.shape[0]
     D = colors.shape[1]
     P = np.empty((M, NP + D), np.float32)
-    for k in range(M):
+    for k in nb.prange(M):
         g = ids[k]
         P[k, 0] = means2d[g, 0]
         P[k, 1] = means2d[g, 1]
@@ -150,6 +170,33 @@ def _gather(ids, means2d, conics, opacities, colors, boxes):
         for c in range(D):
             P[k, NP + c] = colors[g, c]
     return P
+
+
+@nb.njit(parallel=True, cache=True)
+def _sum_per_gaussian(G, by_gaussian, starts):
+    """[N, C] sums of the backward's entry rows per Gaussian, each in increasing entry order
+    (deterministic; the same sums as a serial `index_add_`)."""
+    N = starts.shape[0] - 1
+    out = np.zeros((N, G.shape[1]), np.float32)
+    for g in nb.prange(N):
+        for q in range(starts[g], starts[g + 1]):
+            k = by_gaussian[q]
+            for c in range(G.shape[1]):
+                out[g, c] += G[k, c]
+    return out
+
+
+def _depth_order(depths: torch.Tensor, visible: torch.Tensor) -> np.ndarray:
+    """`raster_torch.depth_order` (its reference) as int64 numpy: one sort of keys (float32 depth
+    bits, index), unique, so the order is the stable one. Visible depths are > 0, where the
+    float's bits sort as the float does; other dtypes take the reference."""
+    if depths.dtype != torch.float32:
+        return depth_order(depths, visible).cpu().numpy().astype(np.int64)
+    idx = np.flatnonzero(visible.detach().cpu().numpy())
+    bits = depths.detach().cpu().numpy()[idx].view(np.int32).astype(np.int64)
+    keys = (bits << 32) | idx
+    keys.sort()
+    return keys & 0xFFFFFFFF
 
 
 @nb.njit(cache=True, inline="always")
@@ -304,10 +351,10 @@ class RasterizeNumba(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, means2d, conics, colors, opacities, depths, extents, visible, width, height, background):
-        order = depth_order(depths, visible).cpu().numpy().astype(np.int64)
+        order = _depth_order(depths, visible)
         m2, ext, con, op = _np32(means2d), _np32(extents), _np32(conics), _np32(opacities)
-        boxes = np.zeros((means2d.shape[0], 2))
-        ids, offsets = _bin_tiles(m2, con, op, ext, order, width, height, TILE, boxes)
+        boxes = np.zeros((means2d.shape[0], 3))
+        ids, offsets, by_gaussian, starts = _bin_tiles(m2, con, op, ext, order, width, height, TILE, boxes)
         P = _gather(ids, m2, con, op, _np32(colors), boxes)
         D = colors.shape[1]
         bg = np.ascontiguousarray(background.detach().cpu().numpy().astype(np.float64))
@@ -315,7 +362,20 @@ class RasterizeNumba(torch.autograd.Function):
         out_T = np.empty((height, width), np.float64)
         out_last = np.empty((height, width), np.int64)
         _forward(P, offsets, bg, width, height, TILE, out_color, out_T, out_last)
-        ctx.state = (ids, offsets, P, bg, width, height, out_T, out_last, means2d.shape[0], D, means2d.dtype)
+        ctx.state = (
+            by_gaussian,
+            starts,
+            offsets,
+            P,
+            bg,
+            width,
+            height,
+            out_T,
+            out_last,
+            means2d.shape[0],
+            D,
+            means2d.dtype,
+        )
         dev = means2d.device
         color = torch.from_numpy(out_color).to(dev)
         alpha = torch.from_numpy((1.0 - out_T).astype(np.float32))[..., None].to(dev)
@@ -323,19 +383,19 @@ class RasterizeNumba(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_color, g_alpha):
-        ids, offsets, P, bg, width, height, out_T, out_last, N, D, dtype = ctx.state
+        by_gaussian, starts, offsets, P, bg, width, height, out_T, out_last, N, D, dtype = ctx.state
         gc = np.ascontiguousarray(g_color.detach().cpu().numpy().astype(np.float64))
         ga = np.ascontiguousarray(g_alpha.detach().cpu().numpy()[..., 0].astype(np.float64))
-        G = np.zeros((ids.shape[0], NG + D), np.float32)  # float32 halves the memory traffic
+        G = np.zeros((P.shape[0], NG + D), np.float32)  # float32 halves the memory traffic
         _backward(P, offsets, bg, width, height, TILE, out_T, out_last, gc, ga, G)
-        acc = torch.zeros(N, NG + D, dtype=torch.float32).index_add_(0, torch.from_numpy(ids), torch.from_numpy(G))
+        acc = torch.from_numpy(_sum_per_gaussian(G, by_gaussian, starts))
         dev = g_color.device
         acc = acc.to(device=dev, dtype=dtype)
         return (acc[:, 0:2], acc[:, 2:5], acc[:, NG:], acc[:, 5], None, None, None, None, None, None)
 
 
-def rasterize_pixels_numba(means2d, conics, colors, opacities, depths, extents, visible, width, height,
-                           background):
+def rasterize_pixels_numba(means2d, conics, colors, opacities, depths, extents, visible, width, height, background):
     """Numba fast path; same arguments and outputs as `rasterize_pixels_torch`."""
-    return RasterizeNumba.apply(means2d, conics, colors, opacities, depths, extents, visible, int(width),
-                                int(height), background)
+    return RasterizeNumba.apply(
+        means2d, conics, colors, opacities, depths, extents, visible, int(width), int(height), background
+    )

@@ -23,10 +23,19 @@ def depth_order(depths: torch.Tensor, visible: torch.Tensor) -> torch.Tensor:
     return idx[torch.argsort(depths[idx], stable=True)]
 
 
-def rasterize_pixels_torch(means2d: torch.Tensor, conics: torch.Tensor, colors: torch.Tensor,
-                           opacities: torch.Tensor, depths: torch.Tensor, extents: torch.Tensor,
-                           visible: torch.Tensor, width: int, height: int, background: torch.Tensor,
-                           block: int = 32) -> tuple[torch.Tensor, torch.Tensor]:
+def rasterize_pixels_torch(
+    means2d: torch.Tensor,
+    conics: torch.Tensor,
+    colors: torch.Tensor,
+    opacities: torch.Tensor,
+    depths: torch.Tensor,
+    extents: torch.Tensor,
+    visible: torch.Tensor,
+    width: int,
+    height: int,
+    background: torch.Tensor,
+    block: int = 32,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Composite 2D Gaussians.
 
     Args:
@@ -48,10 +57,17 @@ def rasterize_pixels_torch(means2d: torch.Tensor, conics: torch.Tensor, colors: 
         row, arow = [], []
         for x0 in range(0, width, block):
             x1 = min(width, x0 + block)
-            sel = ((m[:, 0] + ext[:, 0] >= x0) & (m[:, 0] - ext[:, 0] <= x1)
-                   & (m[:, 1] + ext[:, 1] >= y0) & (m[:, 1] - ext[:, 1] <= y1))
-            ys, xs = torch.meshgrid(torch.arange(y0, y1, device=dev, dtype=dt) + 0.5,
-                                    torch.arange(x0, x1, device=dev, dtype=dt) + 0.5, indexing="ij")
+            sel = (
+                (m[:, 0] + ext[:, 0] >= x0)
+                & (m[:, 0] - ext[:, 0] <= x1)
+                & (m[:, 1] + ext[:, 1] >= y0)
+                & (m[:, 1] - ext[:, 1] <= y1)
+            )
+            ys, xs = torch.meshgrid(
+                torch.arange(y0, y1, device=dev, dtype=dt) + 0.5,
+                torch.arange(x0, x1, device=dev, dtype=dt) + 0.5,
+                indexing="ij",
+            )
             npx = ys.numel()
             if not bool(sel.any()):
                 row.append(background.expand(npx, D).reshape(y1 - y0, x1 - x0, D).to(dt) + link)

@@ -36,10 +36,22 @@ def pick_backend(device: torch.device, backend: str = "auto") -> str:
     return "numba" if device.type == "cpu" else "torch"
 
 
-def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
-              colors: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor, width: int, height: int,
-              background: torch.Tensor | None = None, sh_degree: int | None = None, render_depth: bool = False,
-              backend: str = "auto", near: float = 0.01) -> tuple[torch.Tensor, torch.Tensor, dict[str, Any]]:
+def rasterize(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    viewmat: torch.Tensor,
+    K: torch.Tensor,
+    width: int,
+    height: int,
+    background: torch.Tensor | None = None,
+    sh_degree: int | None = None,
+    render_depth: bool = False,
+    backend: str = "auto",
+    near: float = 0.01,
+) -> tuple[torch.Tensor, torch.Tensor, dict[str, Any]]:
     """Render one view.
 
     Args:
@@ -53,22 +65,30 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
         "depth" [H, W, 1] (alpha-weighted expected depth) when render_depth.
     """
     n = means.shape[0]
-    for name, t, shape in (("means", means, (n, 3)), ("quats", quats, (n, 4)), ("scales", scales, (n, 3)),
-                           ("opacities", opacities, (n,)), ("viewmat", viewmat, (4, 4)), ("K", K, (3, 3))):
+    for name, t, shape in (
+        ("means", means, (n, 3)),
+        ("quats", quats, (n, 4)),
+        ("scales", scales, (n, 3)),
+        ("opacities", opacities, (n,)),
+        ("viewmat", viewmat, (4, 4)),
+        ("K", K, (3, 3)),
+    ):
         if tuple(t.shape) != shape:
             raise ValueError(f"{name} must have shape {shape}, got {tuple(t.shape)}")
     if background is None:
         background = torch.zeros(3, device=means.device, dtype=means.dtype)
     backend = pick_backend(means.device, backend)
     if backend == "gsplat":
-        return _rasterize_gsplat(means, quats, scales, opacities, colors, viewmat, K, width, height, background,
-                                 sh_degree, render_depth)
+        return _rasterize_gsplat(
+            means, quats, scales, opacities, colors, viewmat, K, width, height, background, sh_degree, render_depth
+        )
     # the numba projection differentiates means, quats and scales only; a camera being optimised
     # takes the reference
     fast_proj = backend == "numba" and not (viewmat.requires_grad or K.requires_grad)
     with record_function("wgs:project"):
-        proj = (project_gaussians_numba if fast_proj else project_gaussians)(means, quats, scales, viewmat, K, width,
-                                                                            height, near=near)
+        proj = (project_gaussians_numba if fast_proj else project_gaussians)(
+            means, quats, scales, viewmat, K, width, height, near=near
+        )
     if colors.dim() == 3:
         with record_function("wgs:sh"):
             deg = sh_degree_of(colors.shape[1]) if sh_degree is None else sh_degree
@@ -85,10 +105,17 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
         means2d.retain_grad()
     raster = _rasterize_numba if backend == "numba" else rasterize_pixels_torch
     with record_function("wgs:raster"):
-        out, alpha = raster(means2d, proj.conics, feats, opacities, proj.depths, proj.extents, proj.visible,
-                            width, height, bg)
-    meta: dict[str, Any] = {"means2d": means2d, "radii": proj.extents.max(dim=1).values, "visible": proj.visible,
-                            "depths": proj.depths, "width": width, "height": height}
+        out, alpha = raster(
+            means2d, proj.conics, feats, opacities, proj.depths, proj.extents, proj.visible, width, height, bg
+        )
+    meta: dict[str, Any] = {
+        "means2d": means2d,
+        "radii": proj.extents.max(dim=1).values,
+        "visible": proj.visible,
+        "depths": proj.depths,
+        "width": width,
+        "height": height,
+    }
     if render_depth:
         meta["depth"] = out[..., 3:4]
         out = out[..., :3]
@@ -101,19 +128,36 @@ def _rasterize_numba(*args):
     return rasterize_pixels_numba(*args)
 
 
-def _rasterize_gsplat(means, quats, scales, opacities, colors, viewmat, K, width, height, background,
-                      sh_degree, render_depth):  # pragma: no cover - CUDA only
+def _rasterize_gsplat(
+    means, quats, scales, opacities, colors, viewmat, K, width, height, background, sh_degree, render_depth
+):  # pragma: no cover - CUDA only
     """gsplat's CUDA kernels (optional extra `wgs[cuda]`); same conventions as ours."""
     from gsplat import rasterization
 
     is_sh = colors.dim() == 3
     rc, ra, info = rasterization(
-        means, quats, scales, opacities, colors, viewmat[None], K[None], width, height,
+        means,
+        quats,
+        scales,
+        opacities,
+        colors,
+        viewmat[None],
+        K[None],
+        width,
+        height,
         sh_degree=(sh_degree if sh_degree is not None else sh_degree_of(colors.shape[1])) if is_sh else None,
-        backgrounds=background[None], render_mode="RGB+ED" if render_depth else "RGB", packed=False)
-    meta = {"means2d": info["means2d"][0], "radii": info["radii"][0].float().amax(-1) if info["radii"].dim() == 3
-            else info["radii"][0].float(), "visible": (info["radii"][0] > 0).reshape(means.shape[0], -1).any(-1),
-            "depths": info["depths"][0], "width": width, "height": height}
+        backgrounds=background[None],
+        render_mode="RGB+ED" if render_depth else "RGB",
+        packed=False,
+    )
+    meta = {
+        "means2d": info["means2d"][0],
+        "radii": info["radii"][0].float().amax(-1) if info["radii"].dim() == 3 else info["radii"][0].float(),
+        "visible": (info["radii"][0] > 0).reshape(means.shape[0], -1).any(-1),
+        "depths": info["depths"][0],
+        "width": width,
+        "height": height,
+    }
     if info["means2d"].requires_grad:
         info["means2d"].retain_grad()
         meta["means2d"] = info["means2d"]

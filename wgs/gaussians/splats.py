@@ -26,8 +26,9 @@ KEYS = ("means", "quats", "scales", "opacities", "sh0", "shN")
 CHECKPOINT_VERSION = 1
 
 
-def create_splats(points: torch.Tensor, colors: torch.Tensor, scales: torch.Tensor, sh_degree: int,
-                  opacity: float = 0.1) -> Splats:
+def create_splats(
+    points: torch.Tensor, colors: torch.Tensor, scales: torch.Tensor, sh_degree: int, opacity: float = 0.1
+) -> Splats:
     """New splats at points [N, 3] with colours [N, 3] in [0, 1] and isotropic scales [N] (> 0)."""
     n = points.shape[0]
     k = num_sh_bases(sh_degree)
@@ -46,8 +47,13 @@ def create_splats(points: torch.Tensor, colors: torch.Tensor, scales: torch.Tens
 
 def activate(splats: Splats) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """-> means [N,3], quats [N,4], scales [N,3] (exp), opacities [N] (sigmoid), sh [N,K,3]."""
-    return (splats["means"], splats["quats"], torch.exp(splats["scales"]), torch.sigmoid(splats["opacities"]),
-            torch.cat([splats["sh0"], splats["shN"]], dim=1))
+    return (
+        splats["means"],
+        splats["quats"],
+        torch.exp(splats["scales"]),
+        torch.sigmoid(splats["opacities"]),
+        torch.cat([splats["sh0"], splats["shN"]], dim=1),
+    )
 
 
 def sh_degree(splats: Splats) -> int:
@@ -72,16 +78,26 @@ def from_world(splats: Splats, norm: Normalisation) -> Splats:
 
 
 # ----------------------------------------------------------------------------------- checkpoints
-def save_checkpoint(path: Path, splats: Splats, norm: Normalisation, step: int, extra: dict[str, Any] | None = None
-                    ) -> None:
+def save_checkpoint(
+    path: Path, splats: Splats, norm: Normalisation, step: int, extra: dict[str, Any] | None = None
+) -> None:
     """Atomic `{"step", "splats", "version", "normalisation", ...}` in world coordinates."""
     world = {k: v.detach().cpu().contiguous() for k, v in to_world(splats, norm).items()}
-    write_checkpoint(path, {"version": CHECKPOINT_VERSION, "step": int(step), "splats": world,
-                            "normalisation": norm.to_json(), **(extra or {})})
+    write_checkpoint(
+        path,
+        {
+            "version": CHECKPOINT_VERSION,
+            "step": int(step),
+            "splats": world,
+            "normalisation": norm.to_json(),
+            **(extra or {}),
+        },
+    )
 
 
-def load_checkpoint(path: Path, norm: Normalisation | None = None, device: torch.device | str = "cpu"
-                    ) -> tuple[Splats, dict[str, Any]]:
+def load_checkpoint(
+    path: Path, norm: Normalisation | None = None, device: torch.device | str = "cpu"
+) -> tuple[Splats, dict[str, Any]]:
     """Load (weights_only: no pickle code runs) and validate; returns normalised splats if `norm`."""
     path = Path(path)
     if not path.is_file():
@@ -119,8 +135,11 @@ VIEWER_SH_DEGREE = 3  # INRIA's SIBR viewer reads a fixed degree-3 record (45 f_
 def ply_attributes(sh_deg: int) -> list[str]:
     """The standard 3DGS attribute order (INRIA layout read by SuperSplat and gsplat's viewer)."""
     n_rest = 3 * (num_sh_bases(sh_deg) - 1)
-    return (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(n_rest)]
-            + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+    return (
+        ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+        + [f"f_rest_{i}" for i in range(n_rest)]
+        + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    )
 
 
 def export_ply(path: Path, splats: Splats, pad_to_degree: int | None = None) -> int:
@@ -132,9 +151,15 @@ def export_ply(path: Path, splats: Splats, pad_to_degree: int | None = None) -> 
     if pad_to_degree is not None and pad_to_degree > deg:
         shN = torch.cat([shN, torch.zeros(n, num_sh_bases(pad_to_degree) - 1 - shN.shape[1], 3)], dim=1)
         deg = pad_to_degree
-    cols = [sp["means"], torch.zeros(n, 3), sp["sh0"][:, 0, :],
-            shN.transpose(1, 2).reshape(n, -1),  # channel-major: all R, then G, then B
-            sp["opacities"][:, None], sp["scales"], sp["quats"]]
+    cols = [
+        sp["means"],
+        torch.zeros(n, 3),
+        sp["sh0"][:, 0, :],
+        shN.transpose(1, 2).reshape(n, -1),  # channel-major: all R, then G, then B
+        sp["opacities"][:, None],
+        sp["scales"],
+        sp["quats"],
+    ]
     data = torch.cat(cols, dim=1).numpy().astype("<f4")
     data = data[np.isfinite(data).all(axis=1)]
     write_ply(path, ply_attributes(deg), data)
@@ -144,8 +169,7 @@ def export_ply(path: Path, splats: Splats, pad_to_degree: int | None = None) -> 
 SPLAT_ROW = 32  # bytes per Gaussian in antimatter15's .splat layout
 
 
-def splat_bytes(splats: Splats, rotation: torch.Tensor | None = None, translation: torch.Tensor | None = None
-                ) -> bytes:
+def splat_bytes(splats: Splats, rotation: torch.Tensor | None = None, translation: torch.Tensor | None = None) -> bytes:
     """antimatter15's `.splat` layout (WebGL viewers read it): per Gaussian, position float32 x3,
     scale float32 x3 (activated), colour RGBA uint8 (SH degree 0, opacity), rotation uint8 x4
     (w, x, y, z) * 128 + 128; largest and most opaque first. No view-dependent colour.

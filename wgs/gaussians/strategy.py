@@ -61,8 +61,9 @@ class DensifyStrategy(DensifyParams):
         state["grad2d"][vis] += g[vis].norm(dim=-1)
         state["count"][vis] += 1
 
-    def step(self, params: Params, optimizers: Optimizers, state: dict[str, Any], it: int,
-             prev_it: int | None = None) -> dict[str, int]:
+    def step(
+        self, params: Params, optimizers: Optimizers, state: dict[str, Any], it: int, prev_it: int | None = None
+    ) -> dict[str, int]:
         """Refine when the schedule position moved from prev_it (default it - 1) past a multiple of the
         interval (a time budget can advance it by more than one per step); returns what changed."""
         prev = it - 1 if prev_it is None else prev_it
@@ -99,8 +100,12 @@ class DensifyStrategy(DensifyParams):
             split_mask &= chosen
         n_clone, n_split = int(clone_mask.sum()), int(split_mask.sum())
         if n_clone:
-            _edit(params, optimizers, lambda k, p: torch.cat([p, p[clone_mask]]),
-                  lambda k, s: torch.cat([s, torch.zeros_like(s[clone_mask])]))
+            _edit(
+                params,
+                optimizers,
+                lambda k, p: torch.cat([p, p[clone_mask]]),
+                lambda k, s: torch.cat([s, torch.zeros_like(s[clone_mask])]),
+            )
             split_mask = torch.cat([split_mask, torch.zeros(n_clone, dtype=torch.bool, device=split_mask.device)])
         if n_split:
             split(params, optimizers, split_mask)
@@ -129,8 +134,9 @@ def _edit(params: Params, optimizers: Optimizers, fn_param, fn_state) -> None:
                 st = opt.state.pop(old, None)
                 group["params"][0] = new
                 if st:
-                    opt.state[new] = {k: (fn_state(name, v) if torch.is_tensor(v) and v.dim() > 0 else v)
-                                      for k, v in st.items()}
+                    opt.state[new] = {
+                        k: (fn_state(name, v) if torch.is_tensor(v) and v.dim() > 0 else v) for k, v in st.items()
+                    }
 
 
 def remove(params: Params, optimizers: Optimizers, mask: torch.Tensor) -> None:
@@ -155,12 +161,19 @@ def split(params: Params, optimizers: Optimizers, mask: torch.Tensor, n: int = 2
             new = p[sel].repeat(n, *[1] * (p.dim() - 1))
         return torch.cat([p[rest], new])
 
-    _edit(params, optimizers, fn_param,
-          lambda k, s: torch.cat([s[rest], torch.zeros((n * len(sel), *s.shape[1:]), device=s.device)]))
+    _edit(
+        params,
+        optimizers,
+        fn_param,
+        lambda k, s: torch.cat([s[rest], torch.zeros((n * len(sel), *s.shape[1:]), device=s.device)]),
+    )
 
 
 def reset_opacity(params: Params, optimizers: Optimizers, value: float) -> None:
     logit = math.log(value / (1 - value))
-    _edit(params, optimizers,
-          lambda k, p: p.clamp_max(logit) if k == "opacities" else p,
-          lambda k, s: torch.zeros_like(s) if k == "opacities" else s)
+    _edit(
+        params,
+        optimizers,
+        lambda k, p: p.clamp_max(logit) if k == "opacities" else p,
+        lambda k, s: torch.zeros_like(s) if k == "opacities" else s,
+    )

@@ -25,8 +25,14 @@ def random_scene(n: int, size: int, seed: int = 0, dtype: torch.dtype = torch.fl
     return means, quats, scales, opac, colors, viewmat, K
 
 
-def time_backend(backend: str, size: int, n: int, repeats: int, dtype: torch.dtype = torch.float32,
-                 device: torch.device | str = "cpu") -> dict:
+def time_backend(
+    backend: str,
+    size: int,
+    n: int,
+    repeats: int,
+    dtype: torch.dtype = torch.float32,
+    device: torch.device | str = "cpu",
+) -> dict:
     """Seconds per forward and per forward + backward of `random_scene(n, size)` with rasterizer
     `backend` on `device`, after one untimed warm-up (numba loads its cache): {"forward",
     "forward_backward"}: {"median_s", "min_s", "max_s"}, and "repeats"."""
@@ -42,11 +48,14 @@ def time_backend(backend: str, size: int, n: int, repeats: int, dtype: torch.dty
     def sync() -> None:
         if device.type == "cuda":
             torch.cuda.synchronize(device)
+
     fwd, both = [], []
     for i in range(repeats + 1):
-        params = [t.detach().clone().requires_grad_(True) for t in scene[:5]]
+        means, quats, scales, opacities, colors = (t.detach().clone().requires_grad_(True) for t in scene[:5])
         t0 = time.perf_counter()
-        rgb, alpha, _ = rasterize(*params, scene[5], scene[6], size, size, backend=backend)
+        rgb, alpha, _ = rasterize(
+            means, quats, scales, opacities, colors, scene[5], scene[6], size, size, backend=backend
+        )
         sync()
         t1 = time.perf_counter()
         ((rgb * weights).sum() + alpha.sum()).backward()

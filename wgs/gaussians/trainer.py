@@ -22,11 +22,11 @@ from dataclasses import dataclass, field
 import torch
 from torch.profiler import record_function
 
-from ..config import TrainConfig
 from ..errors import WgsError
+from ..fields import option
 from ..masking import grow
 from ..metrics import ssim_map_fast
-from ..progress import progress_bar
+from ..progress import BAR, progress_bar
 from ..resume import Checkpointer, check_interrupt, deferred_stop, rng_state, set_rng_state
 from ..scene.dataset import Frame, halved
 from ..threads import adapt as adapt_threads
@@ -34,6 +34,41 @@ from .init import floater_mask
 from .render import rasterize
 from .splats import Splats, activate
 from .strategy import DensifyParams, DensifyStrategy, remove
+
+
+@dataclass
+class TrainConfig(DensifyParams):
+    """The loop's settings (the coarse, mask-data and fine stages' configs extend them in
+    `wgs.config`); densification fields and defaults come from `strategy.DensifyParams`."""
+
+    iterations: int = option(2000, "Training iterations.")
+    max_seconds: float | None = option(None, "Stop training after this many seconds.")
+    sh_degree: int = option(2, "Spherical-harmonics degree.", bounds=(0, 3))
+    sh_increase_every: int = 500
+    lr_means: float = 1.6e-4  # times the scene extent
+    lr_means_final: float = 1.6e-6
+    lr_quats: float = 1e-3
+    lr_scales: float = 5e-3
+    lr_opacities: float = 5e-2
+    lr_sh0: float = 2.5e-3
+    lr_shN: float = 2.5e-3 / 20
+    ssim_weight: float = 0.2
+    mask_weight: float = 0.1
+    # views that teach the outline only (mirror views): the weight of the opacity outside their mask
+    # grown by this many pixels (the photos decide within that margin)
+    outline_weight: float = 1.0
+    outline_margin_px: int = option(1, bounds=(0, None))
+    # the views at half size (2x2 pixel means) for this fraction of the schedule: the early
+    # iterations, which fit the coarse shape, cost about half as much
+    half_size_until: float = option(0.0, bounds=(0.0, 1.0))
+    random_background: bool = True
+    init_points: int = 5000  # visual-hull points at most
+    hull_resolution: int = 96
+    floater_every: int = 500
+    floater_k: int = 8
+    floater_lambda: float = 3.0
+    log_every: int = 50
+
 
 # (frame index, iteration) -> per-pixel supervision weight [H, W] in [0, 1], or None for all pixels
 PixelWeights = Callable[[int, int], torch.Tensor | None]
@@ -57,11 +92,14 @@ class PseudoViews:
 class Probe:
     """Quality during training: fn(splats) -> metrics (e.g. test PSNR), run every `every_s` seconds
     of training time (and every `every_iterations` iterations when > 0), at the start and at the
-    end; its own time is left out of the training clock."""
+    end; its own time is left out of the training clock. A probe that took p seconds is followed by
+    the next one no sooner than p / `max_share` training seconds later, so that on large views
+    (ethiopianHead at 666 px: 4.8 s a probe) probing stays a small share of the wall time."""
 
     fn: Callable[[Splats], dict[str, float]]
     every_s: float
     every_iterations: int = 0
+    max_share: float = 0.1
 
 
 @dataclass
@@ -79,30 +117,42 @@ class TrainingViews:
     where each outline-only view allows matter (None for a view with colours), and cameras."""
 
     def __init__(self, frames: list[Frame], device: torch.device, has_masks: bool, outline_margin_px: int):
-        self.images = [f.image.to(device) for f in frames]
+        self.images = [f.pixels.to(device) for f in frames]
         self.masks = [f.mask.to(device) if (has_masks and f.mask is not None) else None for f in frames]
-        self.room = [grow(m, outline_margin_px) if (m is not None and not f.shows_colour) else None
-                     for f, m in zip(frames, self.masks, strict=True)]
+        self.room = [
+            grow(m, outline_margin_px) if (m is not None and not f.shows_colour) else None
+            for f, m in zip(frames, self.masks, strict=True)
+        ]
         self.cameras = [(f.viewmat.to(device), f.K.to(device), f.width, f.height) for f in frames]
 
 
 def make_optimizers(params: Splats, cfg: TrainConfig, extent: float) -> dict[str, torch.optim.Optimizer]:
     """One Adam per parameter group, on the fused kernel (one pass over a group's tensors instead of
     a chain of element-wise ops: 2.0 ms instead of 4.5 ms for six groups of 15k Gaussians on one core)."""
-    lrs = {"means": cfg.lr_means * extent, "quats": cfg.lr_quats, "scales": cfg.lr_scales,
-           "opacities": cfg.lr_opacities, "sh0": cfg.lr_sh0, "shN": cfg.lr_shN}
-    return {k: torch.optim.Adam([{"params": [params[k]], "lr": lr, "name": k}], eps=1e-15, fused=True)
-            for k, lr in lrs.items()}
+    lrs = {
+        "means": cfg.lr_means * extent,
+        "quats": cfg.lr_quats,
+        "scales": cfg.lr_scales,
+        "opacities": cfg.lr_opacities,
+        "sh0": cfg.lr_sh0,
+        "shN": cfg.lr_shN,
+    }
+    return {
+        k: torch.optim.Adam([{"params": [params[k]], "lr": lr, "name": k}], eps=1e-15, fused=True)
+        for k, lr in lrs.items()
+    }
 
 
 def strategy_from(cfg: TrainConfig, extent: float) -> DensifyStrategy:
     """The strategy's thresholds are the config's (inherited) fields of the same names."""
-    return DensifyStrategy(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(DensifyParams)},
-                           scene_extent=extent)
+    return DensifyStrategy(
+        **{f.name: getattr(cfg, f.name) for f in dataclasses.fields(DensifyParams)}, scene_extent=extent
+    )
 
 
-def photometric_loss(render: torch.Tensor, target: torch.Tensor, ssim_weight: float,
-                     weight: torch.Tensor | None = None) -> torch.Tensor:
+def photometric_loss(
+    render: torch.Tensor, target: torch.Tensor, ssim_weight: float, weight: torch.Tensor | None = None
+) -> torch.Tensor:
     """0.8·L1 + 0.2·(1 - SSIM) on [H, W, 3] images, optionally weighted per pixel by [H, W]."""
     l1 = (render - target).abs().mean(-1)
     ssim = ssim_map_fast(render.permute(2, 0, 1)[None], target.permute(2, 0, 1)[None], padding="reflect", eps=1e-12)
@@ -114,11 +164,22 @@ def weighted_mean(err: torch.Tensor, pixel_weight: torch.Tensor | None) -> torch
     return err.mean() if pixel_weight is None else (err * pixel_weight).sum() / pixel_weight.sum().clamp_min(1.0)
 
 
-def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, device: torch.device, *, extent: float,
-                    desc: str = "train", seed: int = 0, pixel_weights: PixelWeights | None = None,
-                    has_masks: bool = True, on_step: Callable[[int, Splats], None] | None = None,
-                    pseudo: PseudoViews | None = None, checkpoint: Checkpointer | None = None,
-                    probe: Probe | None = None) -> TrainResult:
+def train_gaussians(
+    splats: Splats,
+    frames: list[Frame],
+    cfg: TrainConfig,
+    device: torch.device,
+    *,
+    extent: float,
+    desc: str = "train",
+    seed: int = 0,
+    pixel_weights: PixelWeights | None = None,
+    has_masks: bool = True,
+    on_step: Callable[[int, Splats], None] | None = None,
+    pseudo: PseudoViews | None = None,
+    checkpoint: Checkpointer | None = None,
+    probe: Probe | None = None,
+) -> TrainResult:
     """Optimise `splats` (raw, normalised world) on `frames` (with images). Returns the new splats.
 
     pixel_weights(i, it) -> [H, W] supervision weights for frame i (None: all pixels count);
@@ -162,9 +223,12 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
         finished = saved["finished"]
         curve, probe_s = list(saved.get("curve", [])), saved.get("probe_s", 0.0)
 
+    probe_every_s = probe.every_s if probe is not None else 0.0
+
     def measure() -> None:
         """One probe point; the clock is moved on by the probe's own time."""
-        nonlocal t0, probe_s
+        nonlocal t0, probe_s, probe_every_s
+        assert probe is not None
         t_start = time.perf_counter()
         with torch.no_grad():
             metrics = probe.fn({k: v.detach() for k, v in params.items()})
@@ -172,19 +236,29 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
         took = time.perf_counter() - t_start
         t0 += took
         probe_s += took
+        probe_every_s = max(probe.every_s, took / probe.max_share)
 
     def snapshot() -> dict:
-        out = {"params": {k: v.detach().cpu() for k, v in params.items()},
-               "generator": gen.get_state(), "rng": rng_state(), "losses": losses, "order": order,
-               "it": it, "sched": sched, "elapsed": time.perf_counter() - t0, "finished": finished,
-               "curve": curve, "probe_s": probe_s}
+        out = {
+            "params": {k: v.detach().cpu() for k, v in params.items()},
+            "generator": gen.get_state(),
+            "rng": rng_state(),
+            "losses": losses,
+            "order": order,
+            "it": it,
+            "sched": sched,
+            "elapsed": time.perf_counter() - t0,
+            "finished": finished,
+            "curve": curve,
+            "probe_s": probe_s,
+        }
         if not finished:  # a finished loop needs no moments: its final save stays the size of the model
             out["optimizers"] = {k: o.state_dict() for k, o in optimizers.items()}
             out["strategy"] = {k: (None if v is None else v.cpu()) for k, v in state.items()}
         return out
 
     with progress_bar(desc, cfg.iterations) as prog, deferred_stop():
-        prog.update(0, completed=it)
+        prog.update(BAR, completed=it)
         if probe is not None and not curve:
             measure()
         for it in range(it + 1, (it if finished else cfg.iterations) + 1):  # noqa: B020 - resumes the count
@@ -208,8 +282,7 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
             deg = min(max_deg, (sched - 1) // max(cfg.sh_increase_every, 1))
             with record_function("wgs:render"):
                 means, quats, scales, opac, sh = activate(params)
-                rgb, alpha, meta = rasterize(means, quats, scales, opac, sh[:, : (deg + 1) ** 2], viewmat, K, w, h,
-                                             bg)
+                rgb, alpha, meta = rasterize(means, quats, scales, opac, sh[:, : (deg + 1) ** 2], viewmat, K, w, h, bg)
             with record_function("wgs:loss"):
                 if room is not None:  # no colours (and so nothing for pixel weights to hide): only the outline
                     loss = cfg.outline_weight * (alpha[..., 0] * (1 - room)).mean()
@@ -238,14 +311,19 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
                 if not torch.isfinite(torch.stack([p.detach().sum() for p in params.values()])).all():
                     bad = [k for k, p in params.items() if not torch.isfinite(p).all()]
                     if bad:
-                        raise WgsError(f"{desc}: parameter group(s) {', '.join(bad)} became non-finite at iteration "
-                                       f"{it}; nothing was saved")
+                        raise WgsError(
+                            f"{desc}: parameter group(s) {', '.join(bad)} became non-finite at iteration "
+                            f"{it}; nothing was saved"
+                        )
             with torch.no_grad(), record_function("wgs:densify"):
                 strategy.accumulate(state, meta)
                 strategy.step(params, optimizers, state, sched, prev_sched)
-                if (cfg.floater_every > 0 and prev_sched // cfg.floater_every < sched // cfg.floater_every
-                        and sched < cfg.refine_stop
-                        and params["means"].shape[0] > 100):
+                if (
+                    cfg.floater_every > 0
+                    and prev_sched // cfg.floater_every < sched // cfg.floater_every
+                    and sched < cfg.refine_stop
+                    and params["means"].shape[0] > 100
+                ):
                     drop = floater_mask(params["means"], cfg.floater_k, cfg.floater_lambda)
                     if drop.any():
                         remove(params, optimizers, drop)
@@ -254,12 +332,19 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
                 on_step(it, {k: v.detach() for k, v in params.items()})
             if it % cfg.log_every == 0 or it == cfg.iterations:
                 rate = it / max(time.perf_counter() - t0, 1e-9)
-                recent = losses[-cfg.log_every:]
-                prog.update(0, completed=it, status=f"loss {sum(recent) / len(recent):.4f}  "
-                            f"{params['means'].shape[0]} gaussians  {rate:.1f} it/s")
+                recent = losses[-cfg.log_every :]
+                prog.update(
+                    BAR,
+                    completed=it,
+                    status=f"loss {sum(recent) / len(recent):.4f}  "
+                    f"{params['means'].shape[0]} gaussians  {rate:.1f} it/s",
+                )
             finished = it == cfg.iterations or bool(cfg.max_seconds and time.perf_counter() - t0 > cfg.max_seconds)
-            if probe is not None and (finished or time.perf_counter() - t0 - curve[-1]["seconds"] >= probe.every_s
-                                      or 0 < probe.every_iterations <= it - curve[-1]["iteration"]):
+            if probe is not None and (
+                finished
+                or time.perf_counter() - t0 - curve[-1]["seconds"] >= probe_every_s
+                or 0 < probe.every_iterations <= it - curve[-1]["iteration"]
+            ):
                 measure()
             if checkpoint is not None and (finished or checkpoint.due()):
                 checkpoint.save(snapshot())
@@ -270,8 +355,16 @@ def train_gaussians(splats: Splats, frames: list[Frame], cfg: TrainConfig, devic
     return TrainResult(out, it, time.perf_counter() - t0, losses, curve, probe_s)
 
 
-def pseudo_loss(params: Splats, pseudo: PseudoViews, frames: list[Frame], it: int, sched: int, deg: int,
-                device: torch.device, cfg: TrainConfig) -> torch.Tensor:
+def pseudo_loss(
+    params: Splats,
+    pseudo: PseudoViews,
+    frames: list[Frame],
+    it: int,
+    sched: int,
+    deg: int,
+    device: torch.device,
+    cfg: TrainConfig,
+) -> torch.Tensor:
     """L1 + L2 (+ LPIPS) against one pseudo reference (`frames`: pseudo.frames at the size this
     iteration trains at). Where the frame has a mask (0 where the silhouette model is sure of
     background, 1 where the object may be), the reference shows the background outside it and
@@ -280,13 +373,14 @@ def pseudo_loss(params: Splats, pseudo: PseudoViews, frames: list[Frame], it: in
     pixels near the object into white halos)."""
     j = (it // pseudo.every) % len(frames)
     f = frames[j]
-    bg, target = pseudo.background.to(device), f.image.to(device)
+    bg, target = pseudo.background.to(device), f.pixels.to(device)
     if f.mask is not None:
         a = f.mask.to(device)[..., None]
         target = target * a + bg * (1 - a)
     means, quats, scales, opac, sh = activate(params)
-    rgb, alpha, _ = rasterize(means, quats, scales, opac, sh[:, : (deg + 1) ** 2], f.viewmat.to(device),
-                              f.K.to(device), f.width, f.height, bg)
+    rgb, alpha, _ = rasterize(
+        means, quats, scales, opac, sh[:, : (deg + 1) ** 2], f.viewmat.to(device), f.K.to(device), f.width, f.height, bg
+    )
     diff = rgb - target
     loss = diff.abs().mean() + diff.pow(2).mean()
     if f.mask is not None and cfg.mask_weight > 0:
@@ -298,10 +392,21 @@ def pseudo_loss(params: Splats, pseudo: PseudoViews, frames: list[Frame], it: in
 
 
 @torch.no_grad()
-def render_frame(splats: Splats, frame: Frame, device: torch.device, background: torch.Tensor
-                 ) -> tuple[torch.Tensor, torch.Tensor]:
+def render_frame(
+    splats: Splats, frame: Frame, device: torch.device, background: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Render a frame's camera: rgb [H, W, 3], alpha [H, W, 1] (CPU tensors)."""
     means, quats, scales, opac, sh = activate({k: v.to(device) for k, v in splats.items()})
-    rgb, alpha, _ = rasterize(means, quats, scales, opac, sh, frame.viewmat.to(device), frame.K.to(device),
-                              frame.width, frame.height, background.to(device))
+    rgb, alpha, _ = rasterize(
+        means,
+        quats,
+        scales,
+        opac,
+        sh,
+        frame.viewmat.to(device),
+        frame.K.to(device),
+        frame.width,
+        frame.height,
+        background.to(device),
+    )
     return rgb.clamp(0, 1).cpu(), alpha.cpu()

@@ -50,7 +50,7 @@ def write_subbands(path: str | Path, bands: dict[str, np.ndarray], half: bool = 
     spec = oiio.ImageSpec(w, h, c, "half" if half else "float")
     spec.channelnames = tuple(channel_names(bands))
     spec.attribute("compression", "zip")
-    write_with_oiio(path, data, spec, "EXR")
+    write_with_oiio(Path(path), data, spec, "EXR")
 
 
 def read_subbands(path: str | Path) -> dict[str, np.ndarray]:

@@ -67,7 +67,9 @@ def read_image(path: Path, max_pixels: int | None = None) -> np.ndarray:
             if max_pixels is not None and spec.width * spec.height > max_pixels:
                 raise InputError(
                     f"image is {spec.width}x{spec.height}, above the limit of {max_pixels} pixels "
-                    "(raise it with --max-pixels)", path)
+                    "(raise it with --max-pixels)",
+                    path,
+                )
             data = inp.read_image(0, 0, 0, spec.nchannels, "float")
             err = inp.geterror() if hasattr(inp, "geterror") else ""
         finally:

@@ -40,7 +40,7 @@ def read_ply(path: str | Path) -> tuple[list[str], np.ndarray]:
     if n is None or any(p[1] != "float" for p in props):
         raise InputError("expected 'element vertex' with float properties", path)
     names = [p[2] for p in props]
-    body = raw[end + len(END_HEADER):]
+    body = raw[end + len(END_HEADER) :]
     if len(body) < n * 4 * len(names):
         raise InputError(f"truncated: {len(body)} bytes for {n} vertices", path)
     return names, np.frombuffer(body, dtype="<f4", count=n * len(names)).reshape(n, len(names))

@@ -32,7 +32,7 @@ class ResBlock(nn.Module):
         self.emb = nn.Linear(emb, cout) if emb else None
         self.skip = nn.Conv2d(cin, cout, 1) if cin != cout else nn.Identity()
         nn.init.zeros_(self.c2.weight)
-        nn.init.zeros_(self.c2.bias)
+        nn.init.zeros_(self.c2.bias)  # type: ignore[arg-type]  # built with a bias
 
     def forward(self, x: torch.Tensor, e: torch.Tensor | None = None) -> torch.Tensor:
         h = self.c1(nn.functional.silu(self.n1(x)))
@@ -51,8 +51,9 @@ def pad_to_multiple(x: torch.Tensor, m: int) -> tuple[torch.Tensor, tuple[int, i
     return x, (h, w)
 
 
-def unet_pass(y: torch.Tensor, enc: nn.ModuleList, down: nn.ModuleList, dec: nn.ModuleList, up: nn.Module
-              ) -> torch.Tensor:
+def unet_pass(
+    y: torch.Tensor, enc: nn.ModuleList, down: nn.ModuleList, dec: nn.ModuleList, up: nn.Module
+) -> torch.Tensor:
     """The encoder-decoder pass of S and V: enc[i] at each of len(down) + 1 levels with down[i]
     between, then back up through dec[i] with the skip of level i."""
     skips = []

@@ -19,8 +19,14 @@ from ..errors import InputError, WgsError
 from ..io import atomic_path, atomic_write_json
 
 PROMPT = "a photo of xxy5syt00"  # a rare token, as GaussianObject
-SD_FILES = ("model_index.json", "unet/config.json", "vae/config.json", "text_encoder/config.json",
-            "tokenizer/", "scheduler/scheduler_config.json")
+SD_FILES = (
+    "model_index.json",
+    "unet/config.json",
+    "vae/config.json",
+    "text_encoder/config.json",
+    "tokenizer/",
+    "scheduler/scheduler_config.json",
+)
 CN_FILES = ("config.json",)
 
 
@@ -37,20 +43,26 @@ def require_diffusers():
         import diffusers  # noqa: F401
         import peft  # noqa: F401
     except ImportError as exc:
-        raise WgsError(f"--diffusion controlnet needs the optional extra: pip install 'wgs[diffusers]' ({exc})"
-                       ) from None
+        raise WgsError(
+            f"--diffusion controlnet needs the optional extra: pip install 'wgs[diffusers]' ({exc})"
+        ) from None
 
 
 def check_folders(sd_model: Path, controlnet: Path) -> None:
     """A clear message naming the files to download on a machine with internet."""
-    for folder, files, what in ((sd_model, SD_FILES, "Stable Diffusion 1.5 (e.g. the runwayml/"
-                                 "stable-diffusion-v1-5 folder layout)"),
-                                (controlnet, CN_FILES, "ControlNet tile (lllyasviel/control_v11f1e_sd15_tile)")):
-        missing = [f for f in files if not ((Path(folder) / f).is_dir() if f.endswith("/") else
-                                            (Path(folder) / f).is_file())]
+    for folder, files, what in (
+        (sd_model, SD_FILES, "Stable Diffusion 1.5 (e.g. the runwayml/stable-diffusion-v1-5 folder layout)"),
+        (controlnet, CN_FILES, "ControlNet tile (lllyasviel/control_v11f1e_sd15_tile)"),
+    ):
+        missing = [
+            f for f in files if not ((Path(folder) / f).is_dir() if f.endswith("/") else (Path(folder) / f).is_file())
+        ]
         if missing:
-            raise InputError(f"missing {', '.join(missing)}: download {what} with its weights on a machine with "
-                             "internet and copy the folder here", folder)
+            raise InputError(
+                f"missing {', '.join(missing)}: download {what} with its weights on a machine with "
+                "internet and copy the folder here",
+                folder,
+            )
 
 
 def load_pipeline(sd_model: Path, controlnet: Path, device: torch.device):
@@ -61,7 +73,8 @@ def load_pipeline(sd_model: Path, controlnet: Path, device: torch.device):
 
     cn = ControlNetModel.from_pretrained(str(controlnet), local_files_only=True)
     pipe = StableDiffusionControlNetImg2ImgPipeline.from_pretrained(
-        str(sd_model), controlnet=cn, safety_checker=None, requires_safety_checker=False, local_files_only=True)
+        str(sd_model), controlnet=cn, safety_checker=None, requires_safety_checker=False, local_files_only=True
+    )
     pipe.scheduler = DDIMScheduler.from_config(pipe.scheduler.config)
     pipe.set_progress_bar_config(disable=True)
     return pipe.to(device)
@@ -75,15 +88,19 @@ def add_lora(pipe, rank: int) -> list[torch.nn.Parameter]:
     pipe.vae.requires_grad_(False)
     pipe.text_encoder.requires_grad_(False)
     pipe.controlnet.requires_grad_(False)
-    pipe.unet.add_adapter(LoraConfig(r=rank, lora_alpha=rank, init_lora_weights="gaussian",
-                                     target_modules=["to_k", "to_q", "to_v", "to_out.0"]))
+    pipe.unet.add_adapter(
+        LoraConfig(
+            r=rank, lora_alpha=rank, init_lora_weights="gaussian", target_modules=["to_k", "to_q", "to_v", "to_out.0"]
+        )
+    )
     return [p for p in pipe.unet.parameters() if p.requires_grad]
 
 
 def encode_prompt(pipe, batch: int) -> torch.Tensor:
     length = min(pipe.tokenizer.model_max_length, pipe.text_encoder.config.max_position_embeddings)
-    tok = pipe.tokenizer([PROMPT] * batch, padding="max_length", max_length=length, truncation=True,
-                         return_tensors="pt")
+    tok = pipe.tokenizer(
+        [PROMPT] * batch, padding="max_length", max_length=length, truncation=True, return_tensors="pt"
+    )
     with torch.no_grad():
         return pipe.text_encoder(tok.input_ids.to(pipe.device))[0]
 
@@ -97,10 +114,12 @@ def lora_step(pipe, params, opt, clean: torch.Tensor, corrupted: torch.Tensor, g
     noisy = pipe.scheduler.add_noise(latents, noise, t)
     ehs = encode_prompt(pipe, latents.shape[0])
     down, mid = pipe.controlnet(noisy, t, encoder_hidden_states=ehs, controlnet_cond=corrupted, return_dict=False)
-    pred = pipe.unet(noisy, t, encoder_hidden_states=ehs, down_block_additional_residuals=down,
-                     mid_block_additional_residual=mid).sample
-    target = noise if pipe.scheduler.config.prediction_type == "epsilon" else pipe.scheduler.get_velocity(
-        latents, noise, t)
+    pred = pipe.unet(
+        noisy, t, encoder_hidden_states=ehs, down_block_additional_residuals=down, mid_block_additional_residual=mid
+    ).sample
+    target = (
+        noise if pipe.scheduler.config.prediction_type == "epsilon" else pipe.scheduler.get_velocity(latents, noise, t)
+    )
     loss = torch.nn.functional.mse_loss(pred.float(), target.float())
     opt.zero_grad(set_to_none=True)
     loss.backward()
@@ -136,7 +155,16 @@ def load_lora(folder: Path, device: torch.device):
 def repair(pipe, corrupted: torch.Tensor, strength: float, steps: int, seed: int = 0) -> torch.Tensor:
     """corrupted [B, 3, H, W] in [0, 1] -> repaired images [B, 3, H, W] in [0, 1] (img2img + ControlNet)."""
     gen = torch.Generator().manual_seed(seed)
-    out = pipe(prompt=[PROMPT] * corrupted.shape[0], image=corrupted, control_image=corrupted, strength=strength,
-               num_inference_steps=steps, guidance_scale=1.0, generator=gen, output_type="pt",
-               height=corrupted.shape[-2], width=corrupted.shape[-1]).images
+    out = pipe(
+        prompt=[PROMPT] * corrupted.shape[0],
+        image=corrupted,
+        control_image=corrupted,
+        strength=strength,
+        num_inference_steps=steps,
+        guidance_scale=1.0,
+        generator=gen,
+        output_type="pt",
+        height=corrupted.shape[-2],
+        width=corrupted.shape[-1],
+    ).images
     return out.float().cpu()

@@ -61,8 +61,9 @@ def load_pairs(index_path: Path, domain: str, levels: int = 1) -> tuple[torch.Te
     return to_model(c, domain, levels), to_model(b, domain, levels), pairs
 
 
-def random_crops(tensors: list[torch.Tensor], idx: torch.Tensor, size: int, gen: torch.Generator,
-                 flip: bool = True, align: int = 1) -> list[torch.Tensor]:
+def random_crops(
+    tensors: list[torch.Tensor], idx: torch.Tensor, size: int, gen: torch.Generator, flip: bool = True, align: int = 1
+) -> list[torch.Tensor]:
     """The same random crop (and flips) of each tensor [P, C, H, W] at images idx -> [B, C, s, s].
 
     align: crop offsets are multiples of it (2 keeps Haar blocks intact).
@@ -75,7 +76,7 @@ def random_crops(tensors: list[torch.Tensor], idx: torch.Tensor, size: int, gen:
         x = int(torch.randint(0, (w - s) // align + 1, (1,), generator=gen)) * align
         fx, fy = (bool(torch.rand(1, generator=gen) < 0.5) for _ in range(2)) if flip else (False, False)
         for j, t in enumerate(tensors):
-            c = t[i, :, y:y + s, x:x + s]
+            c = t[i, :, y : y + s, x : x + s]
             if fx:
                 c = c.flip(-1)
             if fy:

@@ -34,7 +34,7 @@ class HFUNet(nn.Module):
         self.u1 = ResBlock(3 * c, c)
         self.out = nn.Conv2d(c, config.hf_channels, 3, padding=1)
         nn.init.zeros_(self.out.weight)  # starts as the identity repair
-        nn.init.zeros_(self.out.bias)
+        nn.init.zeros_(self.out.bias)  # type: ignore[arg-type]  # built with a bias
 
     def forward(self, hf: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
         """hf [B, 9, H, W], context [B, 3, H, W] -> repaired hf [B, 9, H, W]."""

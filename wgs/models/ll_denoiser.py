@@ -41,8 +41,10 @@ class LLDenoiser(nn.Module):
         self.up1 = nn.Upsample(scale_factor=2, mode="nearest")
         self.u1 = ResBlock(3 * c, c, e)
         self.out = nn.Sequential(nn.GroupNorm(groups(c), c), nn.SiLU(), nn.Conv2d(c, k, 3, padding=1))
-        nn.init.zeros_(self.out[-1].weight)
-        nn.init.zeros_(self.out[-1].bias)
+        last = self.out[-1]
+        assert isinstance(last, nn.Conv2d) and last.bias is not None
+        nn.init.zeros_(last.weight)
+        nn.init.zeros_(last.bias)
 
     def forward(self, x_t: torch.Tensor, t: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
         """x_t, cond: [B, C, H, W] (any H, W); t: [B] timesteps -> predicted clean image [B, C, H, W]."""

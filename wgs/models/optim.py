@@ -9,8 +9,16 @@ import torch
 from ..errors import WgsError
 
 
-def clipped_step(opt: torch.optim.Optimizer, model: torch.nn.Module, loss: torch.Tensor, where: str, step: int,
-                 ema: torch.nn.Module | None = None, ema_decay: float = 0.0, max_norm: float | None = 1.0) -> float:
+def clipped_step(
+    opt: torch.optim.Optimizer,
+    model: torch.nn.Module,
+    loss: torch.Tensor,
+    where: str,
+    step: int,
+    ema: torch.nn.Module | None = None,
+    ema_decay: float = 0.0,
+    max_norm: float | None = 1.0,
+) -> float:
     """Backward, gradient-norm clip (unless max_norm is None), step, optional EMA of the weights; a
     non-finite loss stops the loop with one line naming `where` and the step. Returns the loss value."""
     value = loss.item()

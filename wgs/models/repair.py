@@ -6,11 +6,11 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 import torch
 
-from ..config import RepairConfig
 from ..wavelet.haar import dwt2, idwt2, split_highs, stack_highs
 from .data import from_model, to_model
 from .denoiser_meta import DenoiserMeta
@@ -26,9 +26,25 @@ def chw_to_hwc(x: torch.Tensor) -> np.ndarray:
 RepairFn = Callable[[torch.Tensor], torch.Tensor]  # [B, 3, h, w] model space -> repaired, model space
 
 
+class RepairSettings(Protocol):
+    """What the repair reads of its stage's config (`wgs.config.RepairConfig`)."""
+
+    strength: float  # SDEdit: the noise level a render is taken to before denoising
+    steps: int  # DDIM steps
+    symmetries: int  # flips / transposes each render is repaired under, averaged
+
+
 # the square's symmetries as (transpose, flip rows, flip columns)
-SYMMETRIES = ((False, False, False), (False, False, True), (False, True, False), (True, False, False),
-              (False, True, True), (True, False, True), (True, True, False), (True, True, True))
+SYMMETRIES = (
+    (False, False, False),
+    (False, False, True),
+    (False, True, False),
+    (True, False, False),
+    (False, True, True),
+    (True, False, True),
+    (True, True, False),
+    (True, True, True),
+)
 
 
 def _apply_symmetry(x: torch.Tensor, sym: tuple[bool, bool, bool], inverse: bool = False) -> torch.Tensor:
@@ -70,8 +86,9 @@ class Repairer:
     symmetries: int = 1
 
 
-def embedded_repairer(D: torch.nn.Module, cfg: RepairConfig, meta: DenoiserMeta, gen: torch.Generator,
-                      device: torch.device) -> RepairFn:
+def embedded_repairer(
+    D: torch.nn.Module, cfg: RepairSettings, meta: DenoiserMeta, gen: torch.Generator, device: torch.device
+) -> RepairFn:
     """SDEdit for a D trained by denoising; one step from the render for a prior-trained D."""
     sched = DDIMScheduler(meta.train_timesteps)
     if meta.start == "corrupted":
@@ -79,7 +96,7 @@ def embedded_repairer(D: torch.nn.Module, cfg: RepairConfig, meta: DenoiserMeta,
     return lambda x: sdedit_repair(D, sched, x.to(device), cfg.strength, cfg.steps, gen).cpu()
 
 
-def controlnet_repairer(pipe, cfg: RepairConfig, seed: int) -> RepairFn:
+def controlnet_repairer(pipe, cfg: RepairSettings, seed: int) -> RepairFn:
     """SD img2img + ControlNet on images in [0, 1], padded to a multiple of 8 and cropped back."""
     from ..models import controlnet_lora as cl
     from ..models.blocks import pad_to_multiple
@@ -93,9 +110,14 @@ def controlnet_repairer(pipe, cfg: RepairConfig, seed: int) -> RepairFn:
 
 
 @torch.no_grad()
-def repair_image(render: torch.Tensor, repair_fn: RepairFn, U: torch.nn.Module | None, domain: str,
-                 device: torch.device, levels: int = 1
-                 ) -> tuple[torch.Tensor, dict[str, np.ndarray], dict[str, np.ndarray]]:
+def repair_image(
+    render: torch.Tensor,
+    repair_fn: RepairFn,
+    U: torch.nn.Module | None,
+    domain: str,
+    device: torch.device,
+    levels: int = 1,
+) -> tuple[torch.Tensor, dict[str, np.ndarray], dict[str, np.ndarray]]:
     """render [H, W, 3] -> pseudo reference [H, W, 3] and the corrupted / repaired subbands.
 
     wavelet: D repairs LL_J; the coarser HF levels are kept, LL_1 is rebuilt from them, and U
@@ -109,21 +131,21 @@ def repair_image(render: torch.Tensor, repair_fn: RepairFn, U: torch.nn.Module |
     else:
         llJ, highs = dwt2(x, levels)
         llJ_fixed = from_model(repair_fn(to_model(llJ.float(), "wavelet", levels)), "wavelet", levels).double()
-        size1 = tuple(highs[0][0].shape[-2:])
+        size1 = (int(highs[0][0].shape[-2]), int(highs[0][0].shape[-1]))
         ll1 = idwt2(llJ, highs[1:], size=size1) if levels > 1 else llJ
         ll1_fixed = idwt2(llJ_fixed, highs[1:], size=size1) if levels > 1 else llJ_fixed
         hf = highs[0]
         hf_fixed = hf
         if U is not None:
             hf_fixed = split_highs(U(stack_highs(hf).float().to(device), ll1.float().to(device)).cpu().double())
-        out = idwt2(ll1_fixed, [hf_fixed], size=(h, w))
+        out = idwt2(ll1_fixed, [hf_fixed], size=(int(h), int(w)))
         names = ("LL", "LH", "HL", "HH")
         bands_in = dict(zip(names, map(chw_to_hwc, (ll1, *hf)), strict=True))
         bands_out = dict(zip(names, map(chw_to_hwc, (ll1_fixed, *hf_fixed)), strict=True))
     return out[0].permute(1, 2, 0).clamp(0, 1).float(), bands_in, bands_out
 
 
-def load_repairer(folder: Path, cfg: RepairConfig, device: torch.device, seed: int) -> Repairer:
+def load_repairer(folder: Path, cfg: RepairSettings, device: torch.device, seed: int) -> Repairer:
     """D's repair function, U (or None) and D's config from a finetune folder (D/ or D_lora/, U/)."""
     gen = torch.Generator().manual_seed(seed)
     if (folder / "D_lora").is_dir():

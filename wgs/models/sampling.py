@@ -8,8 +8,14 @@ from .scheduler import DDIMScheduler
 
 
 @torch.no_grad()
-def sdedit_repair(model: torch.nn.Module, scheduler: DDIMScheduler, corrupted: torch.Tensor, strength: float,
-                  steps: int, generator: torch.Generator | None = None) -> torch.Tensor:
+def sdedit_repair(
+    model: torch.nn.Module,
+    scheduler: DDIMScheduler,
+    corrupted: torch.Tensor,
+    strength: float,
+    steps: int,
+    generator: torch.Generator | None = None,
+) -> torch.Tensor:
     """Noise the corrupted images [B, C, H, W] (model space) to `strength` and denoise them with DDIM,
     conditioned on the corrupted images. strength 1 starts from pure noise."""
     timesteps = scheduler.set_timesteps(steps, strength)
@@ -22,8 +28,13 @@ def sdedit_repair(model: torch.nn.Module, scheduler: DDIMScheduler, corrupted: t
     return x
 
 
-def single_step(model: torch.nn.Module, scheduler: DDIMScheduler, corrupted: torch.Tensor, t: int,
-                generator: torch.Generator | None = None) -> torch.Tensor:
+def single_step(
+    model: torch.nn.Module,
+    scheduler: DDIMScheduler,
+    corrupted: torch.Tensor,
+    t: int,
+    generator: torch.Generator | None = None,
+) -> torch.Tensor:
     """Difix-style repair by a model trained from the render (`start: corrupted`): the render
     noised to level t (t = 0: the render itself, deterministic), one prediction of the clean sample."""
     x = corrupted

@@ -20,8 +20,9 @@ class DDIMScheduler:
     beta_end: float = 0.012
 
     def __post_init__(self) -> None:
-        betas = torch.linspace(self.beta_start**0.5, self.beta_end**0.5, self.num_train_timesteps,
-                               dtype=torch.float64) ** 2
+        betas = (
+            torch.linspace(self.beta_start**0.5, self.beta_end**0.5, self.num_train_timesteps, dtype=torch.float64) ** 2
+        )
         ab = torch.cumprod(1 - betas, 0)
         # zero terminal SNR: shift and scale sqrt(alpha_bar) so its last value is exactly 0
         s = ab.sqrt()
@@ -59,8 +60,9 @@ class DDIMScheduler:
         ab = self._ab(torch.tensor([t]), sample)
         return ab.sqrt() * sample - (1 - ab).sqrt() * v
 
-    def step(self, model_output: torch.Tensor, t: int, sample: torch.Tensor, prev_t: int | None = None,
-             prediction: str = "v") -> torch.Tensor:
+    def step(
+        self, model_output: torch.Tensor, t: int, sample: torch.Tensor, prev_t: int | None = None, prediction: str = "v"
+    ) -> torch.Tensor:
         """One deterministic DDIM step (eta = 0) from t to prev_t (default: the next scheduled step;
         -1 returns the predicted clean sample). prediction: "v" or "sample" (the model predicts x0)."""
         if prev_t is None:

@@ -41,7 +41,7 @@ class SilhouetteNet(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """x [B, 6, H, W] -> object logits [B, 1, H, W]."""
-        x, (h, w) = pad_to_multiple(x, 2 ** self.config.levels)
+        x, (h, w) = pad_to_multiple(x, 2**self.config.levels)
         y = unet_pass(self.inp(x), self.enc, self.down, self.dec, self.up)
         return self.out(y)[..., :h, :w]
 

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
+from typing import Any, TypeVar
 
 import torch
 from safetensors import SafetensorError
@@ -16,15 +18,28 @@ from .ll_denoiser import LLDenoiser, LLDenoiserConfig
 from .silhouette_net import SilhouetteNet, SilhouetteNetConfig
 from .volume_net import VolumeNet, VolumeNetConfig
 
-CLASSES = {"LLDenoiser": (LLDenoiser, LLDenoiserConfig), "HFUNet": (HFUNet, HFUNetConfig),
-           "SilhouetteNet": (SilhouetteNet, SilhouetteNetConfig), "VolumeNet": (VolumeNet, VolumeNetConfig)}
+# class name in config.json -> (network, its config dataclass)
+CLASSES: dict[str, tuple[type[torch.nn.Module], Any]] = {
+    "LLDenoiser": (LLDenoiser, LLDenoiserConfig),
+    "HFUNet": (HFUNet, HFUNetConfig),
+    "SilhouetteNet": (SilhouetteNet, SilhouetteNetConfig),
+    "VolumeNet": (VolumeNet, VolumeNetConfig),
+}
+
+M = TypeVar("M", bound=torch.nn.Module)
+
+
+def config_of(model: torch.nn.Module) -> Any:
+    """The config dataclass of a network of CLASSES (its `config` attribute)."""
+    return vars(model)["config"]
 
 
 def save_model(folder: Path, model: torch.nn.Module, extra: dict | None = None) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     with atomic_path(folder / "model.safetensors") as tmp:
         save_file({k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}, str(tmp))
-    atomic_write_json(folder / "config.json", {**model.config_dict(), **(extra or {})})
+    config = model.config_dict()  # type: ignore[operator]  # every network of CLASSES has it
+    atomic_write_json(folder / "config.json", {**config, **(extra or {})})
 
 
 def load_model(folder: Path, device: torch.device | str = "cpu") -> tuple[torch.nn.Module, dict]:
@@ -39,12 +54,13 @@ def load_model(folder: Path, device: torch.device | str = "cpu") -> tuple[torch.
     if name not in CLASSES:
         raise InputError(f"unknown model class {name!r}", cfg_path)
     cls, cfg_cls = CLASSES[name]
-    fields = {k: cfg[k] for k in cfg_cls.__dataclass_fields__ if k in cfg}
+    fields = {f.name: cfg[f.name] for f in dataclasses.fields(cfg_cls) if f.name in cfg}
     try:
         model = cls(cfg_cls(**fields))
     except (TypeError, ValueError, RuntimeError) as exc:
-        raise InputError(f"model config does not describe a {name} ({str(exc).splitlines()[0][:160]})",
-                         cfg_path) from None
+        raise InputError(
+            f"model config does not describe a {name} ({str(exc).splitlines()[0][:160]})", cfg_path
+        ) from None
     try:
         state = load_file(str(w_path))
         model.load_state_dict(state)
@@ -53,3 +69,11 @@ def load_model(folder: Path, device: torch.device | str = "cpu") -> tuple[torch.
     except (SafetensorError, RuntimeError, OSError) as exc:
         raise InputError(f"weights do not fit the model ({str(exc).splitlines()[0][:200]})", w_path) from None
     return model.to(device).eval(), cfg
+
+
+def load_model_of(folder: Path, cls: type[M], device: torch.device | str = "cpu") -> tuple[M, dict]:
+    """`load_model` of a folder that must hold a `cls` (InputError naming its config otherwise)."""
+    model, cfg = load_model(folder, device)
+    if not isinstance(model, cls):
+        raise InputError(f"holds a {type(model).__name__}, not a {cls.__name__}", folder / "config.json")
+    return model, cfg

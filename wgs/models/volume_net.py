@@ -35,7 +35,7 @@ class ResBlock3d(nn.Module):
         self.n2, self.c2 = nn.GroupNorm(groups(cout), cout), nn.Conv3d(cout, cout, 3, padding=1)
         self.skip = nn.Conv3d(cin, cout, 1) if cin != cout else nn.Identity()
         nn.init.zeros_(self.c2.weight)
-        nn.init.zeros_(self.c2.bias)
+        nn.init.zeros_(self.c2.bias)  # type: ignore[arg-type]  # built with a bias
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         h = self.c1(nn.functional.silu(self.n1(x)))
@@ -47,14 +47,15 @@ class VolumeNet(nn.Module):
         super().__init__()
         self.config = config
         c, n = config.channels, config.levels
-        widths = [c * 2 ** i for i in range(n + 1)]
+        widths = [c * 2**i for i in range(n + 1)]
         self.inp = nn.Conv3d(config.in_channels, c, 3, stride=2, padding=1)
         self.enc = nn.ModuleList(ResBlock3d(widths[max(i - 1, 0)], widths[i]) for i in range(n + 1))
         self.down = nn.ModuleList(nn.Conv3d(widths[i], widths[i], 3, stride=2, padding=1) for i in range(n))
         self.up = nn.Upsample(scale_factor=2, mode="nearest")
         self.dec = nn.ModuleList(ResBlock3d(widths[i + 1] + widths[i], widths[i]) for i in range(n))
-        self.head = nn.Sequential(nn.Conv3d(c + config.in_channels, c // 2, 3, padding=1), nn.SiLU(),
-                                  nn.Conv3d(c // 2, 1, 3, padding=1))
+        self.head = nn.Sequential(
+            nn.Conv3d(c + config.in_channels, c // 2, 3, padding=1), nn.SiLU(), nn.Conv3d(c // 2, 1, 3, padding=1)
+        )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """x [B, 4, R, R, R] (R a multiple of 2 ** (levels + 1)) -> object logits [B, 1, R, R, R]."""

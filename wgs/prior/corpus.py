@@ -37,15 +37,25 @@ class Source:
 
 
 SOURCES = (
-    Source("pmndrs/market-assets", "files/models/*/model.gltf",
-           "per object in info.json (pmndrs market licence id; 1 = CC0)"),
+    Source(
+        "pmndrs/market-assets",
+        "files/models/*/model.gltf",
+        "per object in info.json (pmndrs market licence id; 1 = CC0)",
+    ),
     Source("odedstein/meshes", "objects/*/*.obj", "per object in objects/<name>/README.md (mostly CC-BY/CC0)"),
     Source("alecjacobson/common-3d-test-models", "data/*.obj", "per model, listed in the repository README"),
     # its superquadric_objects/ are Git LFS pointers in the snapshot: our procedural shapes replace them
-    Source("eleramp/pybullet-object-models", "pybullet_object_models/ycb_objects/*/textured_simple_reoriented.obj",
-           "YCB object set (CC-BY 4.0), repository MIT", y_up=False),
-    Source("sbtron/glTF-Sample-Models", "2.0/{Avocado,BarramundiFish,BoomBox,Corset,Lantern,WaterBottle}"
-           "/glTF/*.gltf", "CC0 (Microsoft), per model README"),
+    Source(
+        "eleramp/pybullet-object-models",
+        "pybullet_object_models/ycb_objects/*/textured_simple_reoriented.obj",
+        "YCB object set (CC-BY 4.0), repository MIT",
+        y_up=False,
+    ),
+    Source(
+        "sbtron/glTF-Sample-Models",
+        "2.0/{Avocado,BarramundiFish,BoomBox,Corset,Lantern,WaterBottle}/glTF/*.gltf",
+        "CC0 (Microsoft), per model README",
+    ),
 )
 
 
@@ -61,8 +71,9 @@ def snapshot_dir(mirror: Path, repo: str) -> Path | None:
 def extract(git_dir: Path, dest: Path) -> tuple[int, list[str]]:
     """Write the snapshot's newest tree under dest, skipping blobs the snapshot lacks (files of
     4 MiB and more); returns (files written, paths missing)."""
-    listing = subprocess.run(["git", "--git-dir", str(git_dir), "ls-tree", "-r", "HEAD"], check=True,
-                             capture_output=True, text=True).stdout.splitlines()
+    listing = subprocess.run(
+        ["git", "--git-dir", str(git_dir), "ls-tree", "-r", "HEAD"], check=True, capture_output=True, text=True
+    ).stdout.splitlines()
     written, missing = 0, []
     for line in listing:
         meta, path = line.split("\t", 1)
@@ -106,20 +117,25 @@ def list_objects(src_root: Path) -> list[dict]:
                 licence = f"pmndrs market licence id {meta.get('license')}, creator {meta.get('creator')}"
             readme = p.parent / "README.md"
             if readme.is_file() and "odedstein" in s.repo:
-                lines = [x for x in readme.read_text(encoding="utf-8", errors="replace").splitlines()
-                         if "licen" in x.lower() or "cc" in x.lower()]
+                lines = [
+                    x
+                    for x in readme.read_text(encoding="utf-8", errors="replace").splitlines()
+                    if "licen" in x.lower() or "cc" in x.lower()
+                ]
                 licence = (lines[0].strip() if lines else licence)[:200]
             generic = p.stem in ("model", "textured_simple_reoriented")  # named by their folder
             name = f"{s.repo.split('/')[1]}-{p.parent.name if generic else p.stem}"
-            out.append({"name": _slug(name), "kind": "mesh", "repo": s.repo, "path": rel, "licence": licence,
-                        "y_up": s.y_up})
+            out.append(
+                {"name": _slug(name), "kind": "mesh", "repo": s.repo, "path": rel, "licence": licence, "y_up": s.y_up}
+            )
     return out
 
 
-
 def procedural_objects(n: int, first: int = 0, kind: str = "procedural") -> list[dict]:
-    return [{"name": f"{kind}-{i:04d}", "kind": kind, "seed": i, "licence": "ours (generated)"}
-            for i in range(first, first + n)]
+    return [
+        {"name": f"{kind}-{i:04d}", "kind": kind, "seed": i, "licence": "ours (generated)"}
+        for i in range(first, first + n)
+    ]
 
 
 def _slug(s: str) -> str:
@@ -198,14 +214,23 @@ def prepare_mesh(obj: dict, src_root: Path, rng: np.random.Generator) -> tuple[M
 NOVEL_ELEVATIONS = (-10.0, 80.0)  # degrees: the novel views' band (the shape corpus takes the whole sphere)
 
 
-def render_scene(mesh: Mesh, out: Path, rng: np.random.Generator, size: int, n_train: int, n_test: int,
-                 novel_elevations: tuple[float, float] = NOVEL_ELEVATIONS) -> None:
+def render_scene(
+    mesh: Mesh,
+    out: Path,
+    rng: np.random.Generator,
+    size: int,
+    n_train: int,
+    n_test: int,
+    novel_elevations: tuple[float, float] = NOVEL_ELEVATIONS,
+) -> None:
     """Blender-format scene: train views on the upper hemisphere (5-75 degrees), test (novel) views
     between the two `novel_elevations`."""
     f = 0.5 * size / math.tan(0.5 * FOV_X)
     K = np.array([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1.0]])
-    for split, eyes in (("train", sphere_eyes(rng, n_train, 5, 75)),
-                        ("test", sphere_eyes(rng, n_test, *novel_elevations))):
+    for split, eyes in (
+        ("train", sphere_eyes(rng, n_train, 5, 75)),
+        ("test", sphere_eyes(rng, n_test, *novel_elevations)),
+    ):
         frames = []
         for i, eye in enumerate(eyes):
             c2w = look_at_c2w(eye)
@@ -215,27 +240,49 @@ def render_scene(mesh: Mesh, out: Path, rng: np.random.Generator, size: int, n_t
         (out / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": FOV_X, "frames": frames}))
 
 
-def build_object(obj: dict, src_root: Path, out: Path, size: int, n_train: int, n_test: int,
-                 novel_elevations: tuple[float, float] = NOVEL_ELEVATIONS) -> dict:
+def build_object(
+    obj: dict,
+    src_root: Path,
+    out: Path,
+    size: int,
+    n_train: int,
+    n_test: int,
+    novel_elevations: tuple[float, float] = NOVEL_ELEVATIONS,
+) -> dict:
     seed = int(hashlib.sha1(obj["name"].encode()).hexdigest(), 16) % 2**31
     rng = np.random.default_rng(seed)
     mesh, notes = prepare_mesh(obj, src_root, rng)
     render_scene(mesh, out, rng, size, n_train, n_test, novel_elevations)
-    record = {**obj, **notes, "faces": int(len(mesh.faces)), "size": size, "holdout": is_holdout(obj["name"]),
-              "novel_elevations": list(novel_elevations)}
+    record = {
+        **obj,
+        **notes,
+        "faces": int(len(mesh.faces)),
+        "size": size,
+        "holdout": is_holdout(obj["name"]),
+        "novel_elevations": list(novel_elevations),
+    }
     (out / "object.json").write_text(json.dumps(record, indent=1))
     return record
 
 
-def render_objects(objs: list[dict], src_root: Path, cache: Path, size: int, n_train: int, n_test: int,
-                   novel_elevations: tuple[float, float] = NOVEL_ELEVATIONS, workers: int = 1,
-                   shard: tuple[int, int] = (0, 1)) -> int:
+def render_objects(
+    objs: list[dict],
+    src_root: Path,
+    cache: Path,
+    size: int,
+    n_train: int,
+    n_test: int,
+    novel_elevations: tuple[float, float] = NOVEL_ELEVATIONS,
+    workers: int = 1,
+    shard: tuple[int, int] = (0, 1),
+) -> int:
     """Render each object's scene unless done (workers > 1: one-thread processes, round-robin)."""
     if workers > 1:
         from .pairs import in_processes
 
-        return sum(in_processes(render_objects, workers, objs, src_root, cache, size, n_train, n_test,
-                                novel_elevations))
+        return sum(
+            in_processes(render_objects, workers, objs, src_root, cache, size, n_train, n_test, novel_elevations)
+        )
     made = 0
     for i, obj in enumerate(objs):
         out = cache / "objects" / obj["name"]
@@ -250,9 +297,19 @@ def render_objects(objs: list[dict], src_root: Path, cache: Path, size: int, n_t
     return made
 
 
-def build_corpus(mirror: Path, cache: Path, n_procedural: int, limit: int | None, size: int = 128,
-                 n_train: int = 24, n_test: int = 24, first_procedural: int = 0, workers: int = 1,
-                 n_kitbash: int = 0, novel_elevations: tuple[float, float] = NOVEL_ELEVATIONS) -> list[dict]:
+def build_corpus(
+    mirror: Path,
+    cache: Path,
+    n_procedural: int,
+    limit: int | None,
+    size: int = 128,
+    n_train: int = 24,
+    n_test: int = 24,
+    first_procedural: int = 0,
+    workers: int = 1,
+    n_kitbash: int = 0,
+    novel_elevations: tuple[float, float] = NOVEL_ELEVATIONS,
+) -> list[dict]:
     """Extract the fetched snapshots, list objects, render each (skipping finished ones)."""
     src_root = cache / "src"
     missing_total: dict[str, list[str]] = {}
@@ -262,20 +319,27 @@ def build_corpus(mirror: Path, cache: Path, n_procedural: int, limit: int | None
         if git_dir is None:
             log(f"corpus: {repo} not fetched (skipped); fetch it to include its objects")
             continue
-        snapshots[repo] = subprocess.run(["git", "--git-dir", str(git_dir), "rev-parse", "HEAD"], check=True,
-                                         capture_output=True, text=True).stdout.strip()
+        snapshots[repo] = subprocess.run(
+            ["git", "--git-dir", str(git_dir), "rev-parse", "HEAD"], check=True, capture_output=True, text=True
+        ).stdout.strip()
         n, missing = extract(git_dir, src_root / repo.replace("/", "+"))
         missing_total[repo] = missing
         log(f"corpus: {repo}: {n} files, {len(missing)} missing from the snapshot (>= 4 MiB)")
     groups: dict[str, list[dict]] = {}
     for o in list_objects(src_root):
         groups.setdefault(o["repo"], []).append(o)
-    objs = interleave([procedural_objects(n_procedural, first_procedural),
-                       procedural_objects(n_kitbash, first_procedural, "kitbash"), *groups.values()])
+    objs = interleave(
+        [
+            procedural_objects(n_procedural, first_procedural),
+            procedural_objects(n_kitbash, first_procedural, "kitbash"),
+            *groups.values(),
+        ]
+    )
     if limit is not None:
         objs = objs[:limit]
     render_objects(objs, src_root, cache, size, n_train, n_test, novel_elevations, workers)
     done = [json.loads(p.read_text()) for o in objs if (p := cache / "objects" / o["name"] / "object.json").is_file()]
-    (cache / "corpus.json").write_text(json.dumps({"objects": done, "snapshots": snapshots, "missing": missing_total},
-                                                  indent=1))
+    (cache / "corpus.json").write_text(
+        json.dumps({"objects": done, "snapshots": snapshots, "missing": missing_total}, indent=1)
+    )
     return done

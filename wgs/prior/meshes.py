@@ -10,6 +10,7 @@ import json
 import struct
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -35,8 +36,9 @@ class Mesh:
         self.vertices = np.asarray(self.vertices, np.float64)
         self.faces = np.asarray(self.faces, np.int64)
         if self.vertices.ndim != 2 or self.vertices.shape[1] != 3 or self.faces.ndim != 2 or self.faces.shape[1] != 3:
-            raise ValueError(f"vertices [V, 3] and faces [F, 3] expected, got {self.vertices.shape}, "
-                             f"{self.faces.shape}")
+            raise ValueError(
+                f"vertices [V, 3] and faces [F, 3] expected, got {self.vertices.shape}, {self.faces.shape}"
+            )
         if len(self.faces) and (self.faces.min() < 0 or self.faces.max() >= len(self.vertices)):
             raise ValueError("face indices out of range")
         if self.face_texture is None:
@@ -53,19 +55,27 @@ def concat(meshes: list[Mesh]) -> Mesh:
     """One mesh from several (texture indices renumbered; uv zero where a part has none)."""
     if not meshes:
         raise ValueError("no meshes to join")
-    verts, faces, cols, uvs, ftex, texs = [], [], [], [], [], []
+    verts, faces, cols, uvs, ftex = [], [], [], [], []
+    texs: list[np.ndarray] = []
     off = 0
     for m in meshes:
         verts.append(m.vertices)
         faces.append(m.faces + off)
         cols.append(m.face_colors)
         uvs.append(m.uv if m.uv is not None else np.zeros((len(m.vertices), 2)))
+        assert m.face_texture is not None  # filled in __post_init__
         ftex.append(np.where(m.face_texture >= 0, m.face_texture + len(texs), -1))
         texs.extend(m.textures)
         off += len(m.vertices)
     any_uv = any(m.uv is not None for m in meshes)
-    return Mesh(np.concatenate(verts), np.concatenate(faces), np.concatenate(cols),
-                np.concatenate(uvs) if any_uv else None, np.concatenate(ftex), texs)
+    return Mesh(
+        np.concatenate(verts),
+        np.concatenate(faces),
+        np.concatenate(cols),
+        np.concatenate(uvs) if any_uv else None,
+        np.concatenate(ftex),
+        texs,
+    )
 
 
 def normalise(mesh: Mesh, radius: float = 1.0) -> Mesh:
@@ -107,12 +117,12 @@ def _read_glb(path: Path) -> tuple[dict, bytes | None]:
     if len(data) < 20 or data[:4] != b"glTF":
         raise InputError("not a GLB file", path)
     (json_len,) = struct.unpack_from("<I", data, 12)
-    doc = json.loads(data[20:20 + json_len])
+    doc = json.loads(data[20 : 20 + json_len])
     rest = 20 + json_len
     binary = None
     if rest + 8 <= len(data):
         (bin_len,) = struct.unpack_from("<I", data, rest)
-        binary = data[rest + 8:rest + 8 + bin_len]
+        binary = data[rest + 8 : rest + 8 + bin_len]
     return doc, binary
 
 
@@ -120,9 +130,13 @@ def _node_matrix(node: dict) -> np.ndarray:
     if "matrix" in node:
         return np.asarray(node["matrix"], np.float64).reshape(4, 4).T  # column-major
     x, y, z, w = node.get("rotation", [0, 0, 0, 1])
-    R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                  [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                  [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    R = np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
     m = np.eye(4)
     m[:3, :3] = R * np.asarray(node.get("scale", [1, 1, 1]), np.float64)
     m[:3, 3] = node.get("translation", [0, 0, 0])
@@ -154,7 +168,7 @@ def load_gltf(path: str | Path) -> Mesh:
     def view_bytes(i: int) -> bytes:
         bv = doc["bufferViews"][i]
         off = bv.get("byteOffset", 0)
-        return buffers[bv["buffer"]][off:off + bv["byteLength"]]
+        return buffers[bv["buffer"]][off : off + bv["byteLength"]]
 
     def accessor(i: int) -> np.ndarray:
         a = doc["accessors"][i]
@@ -168,7 +182,7 @@ def load_gltf(path: str | Path) -> Mesh:
         arr = np.ndarray((a["count"], n), dtype, buf, start, (stride, dtype.itemsize))
         out = arr.astype(np.float64)
         if a.get("normalized") and dtype.kind in "iu":
-            out /= np.iinfo(dtype).max
+            out /= np.iinfo(dtype.type).max
         return out
 
     image_cache: dict[int, np.ndarray | None] = {}
@@ -203,8 +217,11 @@ def load_gltf(path: str | Path) -> Mesh:
         else:
             attrs = prim["attributes"]
             pos = accessor(attrs["POSITION"])
-            faces = (accessor(prim["indices"]).astype(np.int64).reshape(-1, 3) if "indices" in prim
-                     else np.arange(len(pos) - len(pos) % 3).reshape(-1, 3))
+            faces = (
+                accessor(prim["indices"]).astype(np.int64).reshape(-1, 3)
+                if "indices" in prim
+                else np.arange(len(pos) - len(pos) % 3).reshape(-1, 3)
+            )
             if "TEXCOORD_0" in attrs:
                 uv = accessor(attrs["TEXCOORD_0"])
             if "COLOR_0" in attrs:
@@ -255,7 +272,7 @@ def load_obj(path: str | Path) -> Mesh:
 
     path = Path(path)
     try:
-        loaded = trimesh.load(str(path), force="mesh", process=False)
+        loaded: Any = trimesh.load(str(path), force="mesh", process=False)  # a Trimesh (force="mesh")
     except Exception as exc:  # trimesh raises many types for damaged files
         raise InputError(f"cannot read OBJ ({type(exc).__name__}: {exc})", path) from None
     if not hasattr(loaded, "faces") or len(loaded.faces) == 0:

@@ -15,6 +15,7 @@ import shutil
 import time
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -51,8 +52,15 @@ def object_pairs(scene_dir: Path, work: Path, views: int, coarse_overrides: dict
     bg = torch.ones(3)
     centres = torch.stack([f.center for f in scene.train])
     grid = visual_hull_grid(scene.train, resolution=96, tolerate=0)
-    out: dict[str, list] = {"render": [], "ref": [], "render_alpha": [], "ref_alpha": [], "distance": [],
-                            "hull": [], "hull_depth": []}
+    out: dict[str, list] = {
+        "render": [],
+        "ref": [],
+        "render_alpha": [],
+        "ref_alpha": [],
+        "distance": [],
+        "hull": [],
+        "hull_depth": [],
+    }
     for f in scene.test:
         rgb, alpha = render_frame(splats, f, torch.device("cpu"), bg)
         hull, hull_depth = hull_channels(grid, f)
@@ -60,17 +68,23 @@ def object_pairs(scene_dir: Path, work: Path, views: int, coarse_overrides: dict
         out["hull_depth"].append(hull_depth.numpy().astype(np.float16))
         out["render"].append(to_u8(rgb))
         out["render_alpha"].append(to_u8(alpha[..., 0]))
-        out["ref"].append(to_u8(composite(f.image, f.mask, bg)))
+        out["ref"].append(to_u8(composite(f.pixels, f.mask, bg)))
         out["ref_alpha"].append(to_u8(f.mask if f.mask is not None else torch.ones(f.height, f.width)))
         out["distance"].append(float((centres - f.center).norm(dim=1).min()))
-    arrays = {k: np.stack(v) for k, v in out.items()}
+    arrays: dict[str, Any] = {k: np.stack(v) for k, v in out.items()}
     arrays["distance"] = arrays["distance"].astype(np.float32)
     arrays["seconds"] = np.float32(time.perf_counter() - t0)
     return arrays
 
 
-def build_pairs(cache: Path, coarse_overrides: dict, limit: int | None = None, budget_s: float | None = None,
-                workers: int = 1, shard: tuple[int, int] = (0, 1)) -> int:
+def build_pairs(
+    cache: Path,
+    coarse_overrides: dict,
+    limit: int | None = None,
+    budget_s: float | None = None,
+    workers: int = 1,
+    shard: tuple[int, int] = (0, 1),
+) -> int:
     """Pairs for every rendered corpus object without them yet; stops after budget_s seconds.
     workers > 1: that many processes of one thread each, objects dealt out round-robin."""
     if workers > 1:

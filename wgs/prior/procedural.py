@@ -29,9 +29,13 @@ def _grid_faces(nu: int, nv: int, wrap_v: bool) -> np.ndarray:
 def random_rotation(rng: np.random.Generator) -> np.ndarray:
     q = rng.normal(size=4)
     w, x, y, z = q / np.linalg.norm(q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def superquadric(radii: np.ndarray, e1: float, e2: float, nu: int = 20, nv: int = 40) -> Mesh:
@@ -77,8 +81,22 @@ def random_shape(rng: np.random.Generator) -> Mesh:
 def box(size: np.ndarray) -> Mesh:
     """Axis-aligned box centred at the origin, 12 outward-facing triangles."""
     corners = (np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * size / 2).astype(float)
-    faces = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
-                      [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+    faces = np.array(
+        [
+            [0, 1, 3],
+            [0, 3, 2],
+            [4, 6, 7],
+            [4, 7, 5],
+            [0, 4, 5],
+            [0, 5, 1],
+            [2, 3, 7],
+            [2, 7, 6],
+            [0, 2, 6],
+            [0, 6, 4],
+            [1, 5, 7],
+            [1, 7, 3],
+        ]
+    )
     return Mesh(corners, faces, np.full((12, 3), 0.8))
 
 
@@ -86,13 +104,22 @@ def cylinder(radius: float, height: float, sides: int = 16) -> Mesh:
     """Closed cylinder along z centred at the origin."""
     a = np.linspace(0, 2 * np.pi, sides, endpoint=False)
     ring = np.stack([radius * np.cos(a), radius * np.sin(a)], -1)
-    verts = np.concatenate([np.c_[ring, np.full(sides, -height / 2)], np.c_[ring, np.full(sides, height / 2)],
-                            [[0, 0, -height / 2], [0, 0, height / 2]]])
+    verts = np.concatenate(
+        [
+            np.c_[ring, np.full(sides, -height / 2)],
+            np.c_[ring, np.full(sides, height / 2)],
+            [[0, 0, -height / 2], [0, 0, height / 2]],
+        ]
+    )
     faces = []
     for i in range(sides):
         j = (i + 1) % sides
-        faces += [(i, j, sides + j), (i, sides + j, sides + i),  # side
-                  (2 * sides, j, i), (2 * sides + 1, sides + i, sides + j)]  # bottom and top caps
+        faces += [
+            (i, j, sides + j),
+            (i, sides + j, sides + i),  # side
+            (2 * sides, j, i),
+            (2 * sides + 1, sides + i, sides + j),
+        ]  # bottom and top caps
     return Mesh(verts, np.asarray(faces), np.full((len(faces), 3), 0.8))
 
 
@@ -184,7 +211,7 @@ def random_texture(rng: np.random.Generator, size: int = 256) -> tuple[np.ndarra
         c = int(min(img.shape[:2]) * rng.uniform(0.3, 0.9))
         y0 = int(rng.integers(0, img.shape[0] - c + 1))
         x0 = int(rng.integers(0, img.shape[1] - c + 1))
-        crop = img[y0:y0 + c, x0:x0 + c]
+        crop = img[y0 : y0 + c, x0 : x0 + c]
         idx = np.arange(size) * c // size
         return crop[idx][:, idx].astype(np.float64), "photo"
     if kind == "photo":

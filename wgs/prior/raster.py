@@ -53,8 +53,9 @@ def _zbuffer(px, py, pz, faces, height, width, tri, bary, depth):  # pragma: no 
                     bary[y, x, 1] = w1 / z1 * z
 
 
-def rasterize(vertices: np.ndarray, faces: np.ndarray, viewmat: np.ndarray, K: np.ndarray, width: int,
-              height: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def rasterize(
+    vertices: np.ndarray, faces: np.ndarray, viewmat: np.ndarray, K: np.ndarray, width: int, height: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """vertices [V, 3], faces [F, 3] -> triangle id [H, W] (-1: empty), barycentrics [H, W, 3], depth [H, W]."""
     cam = vertices @ viewmat[:3, :3].T + viewmat[:3, 3]
     z = cam[:, 2]
@@ -91,7 +92,7 @@ def shade(mesh: Mesh, tri: np.ndarray, bary: np.ndarray, eye: np.ndarray) -> np.
     corners = mesh.faces[f]  # [N, 3]
     pos = np.einsum("nk,nkc->nc", b, mesh.vertices[corners])
     colour = mesh.face_colors[f].astype(np.float64)
-    if mesh.uv is not None and mesh.textures:
+    if mesh.uv is not None and mesh.textures and mesh.face_texture is not None:
         uv = np.einsum("nk,nkc->nc", b, mesh.uv[corners])
         for t, tex in enumerate(mesh.textures):
             sel = mesh.face_texture[f] == t
@@ -112,12 +113,16 @@ def triplanar(tex: np.ndarray, pos: np.ndarray, normal: np.ndarray, scale: float
     wts = np.abs(normal) ** 4
     wts /= wts.sum(-1, keepdims=True).clip(1e-12)
     p = pos * scale
-    return (sample_bilinear(tex, p[:, [1, 2]]) * wts[:, :1] + sample_bilinear(tex, p[:, [0, 2]]) * wts[:, 1:2]
-            + sample_bilinear(tex, p[:, [0, 1]]) * wts[:, 2:])
+    return (
+        sample_bilinear(tex, p[:, [1, 2]]) * wts[:, :1]
+        + sample_bilinear(tex, p[:, [0, 2]]) * wts[:, 1:2]
+        + sample_bilinear(tex, p[:, [0, 1]]) * wts[:, 2:]
+    )
 
 
-def render_rgba(mesh: Mesh, viewmat: np.ndarray, K: np.ndarray, width: int, height: int, supersample: int = 2
-                ) -> np.ndarray:
+def render_rgba(
+    mesh: Mesh, viewmat: np.ndarray, K: np.ndarray, width: int, height: int, supersample: int = 2
+) -> np.ndarray:
     """Straight-alpha RGBA [H, W, 4] in [0, 1]; alpha = pixel coverage by the object."""
     s = supersample
     Ks = K.copy()

@@ -29,7 +29,6 @@ from ..training.denoiser import psnr_model_space, train_denoiser
 from ..training.hf import identity_l1, train_hf
 from ..training.loop import FitPlan, FitState
 from ..wavelet.haar import dwt2
-from . import WEIGHTS  # noqa: F401  (re-exported for the CLI)
 
 
 @dataclass
@@ -60,16 +59,19 @@ def load_pack(path: Path) -> dict[str, torch.Tensor]:
     """A training pack (`pack_pairs`): render, ref [N, 3, H, W] in [0, 1], holdout [N] bool, object [N]
     (pair file index)."""
     with np.load(path) as z:
-        out = {"render": torch.from_numpy(z["render"]).permute(0, 3, 1, 2).float() / 255,
-               "ref": torch.from_numpy(z["ref"]).permute(0, 3, 1, 2).float() / 255,
-               "holdout": torch.from_numpy(z["holdout"])}
+        out = {
+            "render": torch.from_numpy(z["render"]).permute(0, 3, 1, 2).float() / 255,
+            "ref": torch.from_numpy(z["ref"]).permute(0, 3, 1, 2).float() / 255,
+            "holdout": torch.from_numpy(z["holdout"]),
+        }
         if "object" in z.files:
             out["object"] = torch.from_numpy(z["object"]).long()
     return out
 
 
-def growing_subsets(objects: torch.Tensor, holdout: torch.Tensor, fractions: list[float], seed: int
-                    ) -> Iterator[tuple[dict, torch.Tensor]]:
+def growing_subsets(
+    objects: torch.Tensor, holdout: torch.Tensor, fractions: list[float], seed: int
+) -> Iterator[tuple[dict, torch.Tensor]]:
     """Corpus-size curves: for each fraction, the first fraction of the training objects in a
     fixed random order plus every held-out pair. objects / holdout [N] per pair; yields ({fraction,
     objects, pairs}, the pairs to use [N] bool)."""
@@ -81,15 +83,20 @@ def growing_subsets(objects: torch.Tensor, holdout: torch.Tensor, fractions: lis
         yield {"fraction": frac, "objects": int(len(keep)), "pairs": int((use & ~holdout).sum())}, use
 
 
-def corpus_curve(pack: Path, fractions: list[float], cfg: PriorConfig, device: torch.device, log=print
-                 ) -> list[dict]:
+def corpus_curve(pack: Path, fractions: list[float], cfg: PriorConfig, device: torch.device, log=print) -> list[dict]:
     """Held-out gain of D against corpus size (`growing_subsets`)."""
     data = load_pack(pack)
     rows = []
     for row, use in growing_subsets(data["object"], data["holdout"], fractions, cfg.seed):
         _, curve, _ = train_d(cfg, data["render"][use], data["ref"][use], data["holdout"][use], device, log)
-        rows.append({**row, "identity_psnr": curve["val_identity_psnr"], "repaired_psnr": curve["val_psnr"][-1],
-                     "gain_db": curve["val_psnr"][-1] - curve["val_identity_psnr"]})
+        rows.append(
+            {
+                **row,
+                "identity_psnr": curve["val_identity_psnr"],
+                "repaired_psnr": curve["val_psnr"][-1],
+                "gain_db": curve["val_psnr"][-1] - curve["val_identity_psnr"],
+            }
+        )
         log(f"curve: {rows[-1]}")
     return rows
 
@@ -105,14 +112,28 @@ def pack_pairs(pairs_dir: Path, out: Path, max_objects: int | None = None) -> di
             hold.append(np.full(len(z["render"]), bool(z["holdout"])))
             obj.append(np.full(len(z["render"]), i, np.int32))
             names.append(f.stem)
-    np.savez_compressed(out, render=np.concatenate(render), ref=np.concatenate(ref), holdout=np.concatenate(hold),
-                        object=np.concatenate(obj))
-    return {"objects": names, "pairs": int(sum(len(r) for r in render)),
-            "holdout_objects": [n for n, h in zip(names, hold, strict=True) if h[0]]}
+    np.savez_compressed(
+        out,
+        render=np.concatenate(render),
+        ref=np.concatenate(ref),
+        holdout=np.concatenate(hold),
+        object=np.concatenate(obj),
+    )
+    return {
+        "objects": names,
+        "pairs": int(sum(len(r) for r in render)),
+        "holdout_objects": [n for n, h in zip(names, hold, strict=True) if h[0]],
+    }
 
 
-def augmented_batch(render: torch.Tensor, ref: torch.Tensor, idx: torch.Tensor, crop: int, scales: tuple[float, float],
-                    gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+def augmented_batch(
+    render: torch.Tensor,
+    ref: torch.Tensor,
+    idx: torch.Tensor,
+    crop: int,
+    scales: tuple[float, float],
+    gen: torch.Generator,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """The same random zoom (log-uniform in `scales`), crop (even offsets: Haar blocks stay
     intact), flips and colour-channel permutation of both images [N, 3, H, W] at idx -> [B, 3, c, c]."""
     lo, hi = math.log(scales[0]), math.log(scales[1])
@@ -159,9 +180,16 @@ class StateFile:
 PRIOR_D = DenoiserMeta(domain="wavelet", levels=1, start="corrupted", repair_t=0)
 
 
-def train_d(cfg: PriorConfig, render: torch.Tensor, ref: torch.Tensor, hold: torch.Tensor, device: torch.device,
-            log=print, init: LLDenoiser | None = None, state_path: Path | None = None
-            ) -> tuple[LLDenoiser, dict, DenoiserMeta]:
+def train_d(
+    cfg: PriorConfig,
+    render: torch.Tensor,
+    ref: torch.Tensor,
+    hold: torch.Tensor,
+    device: torch.device,
+    log=print,
+    init: LLDenoiser | None = None,
+    state_path: Path | None = None,
+) -> tuple[LLDenoiser, dict, DenoiserMeta]:
     """D trained on the pairs (`training.denoiser`, from the render); `init`: start from these
     weights (a prior trained on another corpus); `state_path`: the training state saved there
     at every record, and continued from. Returns the EMA model, its curve and its metadata."""
@@ -186,18 +214,37 @@ def train_d(cfg: PriorConfig, render: torch.Tensor, ref: torch.Tensor, hold: tor
         return ll_of(c), ll_of(r)
 
     def report(st: FitState) -> None:
-        log(f"D step {st.step}: loss {st.curve['loss'][-1]:.5f}  held-out LL PSNR {identity:.2f} "
-            f"-> {psnr_model_space(st.curve['val'][-1]):.2f} dB  ({time.perf_counter() - t0:.0f} s)")
+        log(
+            f"D step {st.step}: loss {st.curve['loss'][-1]:.5f}  held-out LL PSNR {identity:.2f} "
+            f"-> {psnr_model_space(st.curve['val'][-1]):.2f} dB  ({time.perf_counter() - t0:.0f} s)"
+        )
 
-    model, st = train_denoiser(model, meta, batch, plan, gen, opt, held=held, charbonnier=cfg.charbonnier,
-                               name="prior D", on_record=report,
-                               checkpoint=None if state_path is None else StateFile(state_path, asdict(cfg)))
+    model, st = train_denoiser(
+        model,
+        meta,
+        batch,
+        plan,
+        gen,
+        opt,
+        held=held,
+        charbonnier=cfg.charbonnier,
+        name="prior D",
+        on_record=report,
+        checkpoint=None if state_path is None else StateFile(state_path, asdict(cfg)),
+    )
     curve = {**st.summary(), "val_psnr": [psnr_model_space(v) for v in st.curve["val"]], "val_identity_psnr": identity}
     return model, curve, meta
 
 
-def train_u(cfg: PriorConfig, render: torch.Tensor, ref: torch.Tensor, hold: torch.Tensor, device: torch.device,
-            log=print, init: HFUNet | None = None) -> tuple[HFUNet, dict]:
+def train_u(
+    cfg: PriorConfig,
+    render: torch.Tensor,
+    ref: torch.Tensor,
+    hold: torch.Tensor,
+    device: torch.device,
+    log=print,
+    init: HFUNet | None = None,
+) -> tuple[HFUNet, dict]:
     """U trained on the pairs (`training.hf`; from `init`'s weights when given); the best held-out
     state is kept."""
     gen = torch.Generator().manual_seed(cfg.seed + 1)
@@ -215,36 +262,72 @@ def train_u(cfg: PriorConfig, render: torch.Tensor, ref: torch.Tensor, hold: tor
         return augmented_batch(render, ref, idx.to(render.device), cfg.u_crop, (cfg.min_scale, cfg.max_scale), gen)
 
     identity = identity_l1(*held)
-    model, st, _ = train_hf(model, batch, plan, gen, opt, held, start_is_bar=init is not None, name="prior U",
-                                   on_record=lambda st: log(f"U step {st.step}: held-out HF L1 {identity:.5f} "
-                                                            f"-> {st.curve['val'][-1]:.5f}"))
+    model, st, _ = train_hf(
+        model,
+        batch,
+        plan,
+        gen,
+        opt,
+        held,
+        start_is_bar=init is not None,
+        name="prior U",
+        on_record=lambda st: log(f"U step {st.step}: held-out HF L1 {identity:.5f} -> {st.curve['val'][-1]:.5f}"),
+    )
     return model, {**st.summary(), "identity": identity}
 
 
-def train_prior(pack: Path, out: Path, cfg: PriorConfig, device: torch.device, provenance: dict | None = None,
-                log=print, init: Path | None = None, state_dir: Path | None = None) -> dict:
+def train_prior(
+    pack: Path,
+    out: Path,
+    cfg: PriorConfig,
+    device: torch.device,
+    provenance: dict | None = None,
+    log=print,
+    init: Path | None = None,
+    state_dir: Path | None = None,
+) -> dict:
     """Train D and U on a pack; write out/D, out/U (config.json + model.safetensors), provenance.json.
     init: a prior folder (D/, U/, provenance.json) to start from; its provenance is kept in ours.
     state_dir: where D's training state is kept between runs (a rerun continues)."""
-    from ..models.storage import load_model, save_model
+    from ..models.hf_unet import HFUNet
+    from ..models.ll_denoiser import LLDenoiser
+    from ..models.storage import load_model_of, save_model
 
     data = load_pack(pack)
     torch.manual_seed(cfg.seed)
     d_init = u_init = None
     if init is not None:
-        d_init, u_init = load_model(init / "D")[0], load_model(init / "U")[0]
+        d_init, u_init = load_model_of(init / "D", LLDenoiser)[0], load_model_of(init / "U", HFUNet)[0]
         prov = init / "provenance.json"
-        provenance = {**(provenance or {}), "init": {"path": str(init), "provenance": json.loads(prov.read_text())
-                                                     if prov.is_file() else None}}
+        provenance = {
+            **(provenance or {}),
+            "init": {"path": str(init), "provenance": json.loads(prov.read_text()) if prov.is_file() else None},
+        }
     t0 = time.perf_counter()
-    d, d_curve, meta = train_d(cfg, data["render"], data["ref"], data["holdout"], device, log, d_init,
-                               None if state_dir is None else state_dir / "train_state_D.pt")
+    d, d_curve, meta = train_d(
+        cfg,
+        data["render"],
+        data["ref"],
+        data["holdout"],
+        device,
+        log,
+        d_init,
+        None if state_dir is None else state_dir / "train_state_D.pt",
+    )
     save_model(out / "D", d, meta.to_config())
     t1 = time.perf_counter()
     u, u_curve = train_u(cfg, data["render"], data["ref"], data["holdout"], device, log, u_init)
     save_model(out / "U", u)
-    record = {"config": asdict(cfg), "pairs": int(len(data["holdout"])), "holdout_pairs": int(data["holdout"].sum()),
-              "device": str(device), "d_seconds": round(t1 - t0, 1),
-              "u_seconds": round(time.perf_counter() - t1, 1), "D": d_curve, "U": u_curve, **(provenance or {})}
+    record = {
+        "config": asdict(cfg),
+        "pairs": int(len(data["holdout"])),
+        "holdout_pairs": int(data["holdout"].sum()),
+        "device": str(device),
+        "d_seconds": round(t1 - t0, 1),
+        "u_seconds": round(time.perf_counter() - t1, 1),
+        "D": d_curve,
+        "U": u_curve,
+        **(provenance or {}),
+    }
     (out / "provenance.json").write_text(json.dumps(record, indent=1))
     return record

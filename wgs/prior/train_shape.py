@@ -13,6 +13,7 @@ import statistics
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -32,12 +33,13 @@ class ShapeTrainConfig(MaskTrainConfig):
     steps: int = 2500
 
 
-def load_shape_pairs(pairs_dir: Path, work_size: int) -> dict[str, torch.Tensor]:
+def load_shape_pairs(pairs_dir: Path, work_size: int) -> dict[str, Any]:
     """The pair files that carry the hull channels, at `work_size`: inputs [N, 6, h, w], target
     [N, h, w] (the true alpha's coverage), holdout [N] bool, object [N] (file index), and names (file
     stems)."""
 
-    xs, ys, hold, obj, names = [], [], [], [], []
+    xs, ys, hold, obj = [], [], [], []
+    names: list[str] = []
     files = sorted(p for p in pairs_dir.glob("*.npz"))
     for f in files:
         with np.load(f) as z:
@@ -56,8 +58,13 @@ def load_shape_pairs(pairs_dir: Path, work_size: int) -> dict[str, torch.Tensor]
             names.append(f.stem)
     if not xs:
         raise InputError("no pair files with hull channels (rebuild them with `python -m wgs.prior pairs`)", pairs_dir)
-    return {"inputs": torch.cat(xs), "target": torch.cat(ys), "holdout": torch.cat(hold),
-            "object": torch.cat(obj), "names": names}
+    return {
+        "inputs": torch.cat(xs),
+        "target": torch.cat(ys),
+        "holdout": torch.cat(hold),
+        "object": torch.cat(obj),
+        "names": names,
+    }
 
 
 def augment(x: torch.Tensor, y: torch.Tensor, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
@@ -94,17 +101,26 @@ def held_out_scores(model: torch.nn.Module, data: dict[str, torch.Tensor], devic
             rows["S"].append(silhouette_scores(prob[j] > 0.5, true))
             rows["hull"].append(silhouette_scores(x[j, 4] > 0.5, true))
             rows["coarse"].append(silhouette_scores(x[j, 3] > 0.5, true))
-    return {f"{who}_{k}": statistics.fmean(r[k] for r in rs) for who, rs in rows.items() for k in ("iou", "excess",
-                                                                                                   "missed")}
+    return {
+        f"{who}_{k}": statistics.fmean(r[k] for r in rs)
+        for who, rs in rows.items()
+        for k in ("iou", "excess", "missed")
+    }
 
 
-def train_silhouette(data: dict[str, torch.Tensor], cfg: ShapeTrainConfig, device: torch.device, log=print,
-                     init: torch.nn.Module | None = None) -> tuple[SilhouetteNet, dict]:
+def train_silhouette(
+    data: dict[str, torch.Tensor],
+    cfg: ShapeTrainConfig,
+    device: torch.device,
+    log=print,
+    init: SilhouetteNet | None = None,
+) -> tuple[SilhouetteNet, dict]:
     """Train S on the non-held-out pairs (`training.loop`); returns the EMA model and its curve
     (held-out scores at each record)."""
     torch.manual_seed(cfg.seed)
     gen = torch.Generator().manual_seed(cfg.seed)
-    model = (copy.deepcopy(init) if init is not None else SilhouetteNet(cfg.net)).to(device)
+    model: SilhouetteNet = copy.deepcopy(init) if init is not None else SilhouetteNet(cfg.net)
+    model.to(device)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=1e-4)
     train_idx = (~data["holdout"]).nonzero()[:, 0]
     if train_idx.numel() == 0:
@@ -118,9 +134,11 @@ def train_silhouette(data: dict[str, torch.Tensor], cfg: ShapeTrainConfig, devic
 
     def report(st: FitState) -> None:
         scores = st.curve["val"][-1] if st.curve["val"] else {}
-        log(f"S: step {st.step}/{cfg.steps} loss {st.curve['loss'][-1]:.4f} held-out IoU "
+        log(
+            f"S: step {st.step}/{cfg.steps} loss {st.curve['loss'][-1]:.4f} held-out IoU "
             f"S {scores.get('S_iou', float('nan')):.3f} hull {scores.get('hull_iou', float('nan')):.3f} "
-            f"coarse {scores.get('coarse_iou', float('nan')):.3f} ({time.perf_counter() - t0:.0f} s)")
+            f"coarse {scores.get('coarse_iou', float('nan')):.3f} ({time.perf_counter() - t0:.0f} s)"
+        )
 
     t0 = time.perf_counter()
     evaluate = (lambda m: held_out_scores(m, data, device)) if data["holdout"].any() else None
@@ -128,8 +146,9 @@ def train_silhouette(data: dict[str, torch.Tensor], cfg: ShapeTrainConfig, devic
     return ema.cpu(), {**st.summary(), "config": asdict(cfg)}
 
 
-def shape_curve(data: dict[str, torch.Tensor], fractions: list[float], cfg: ShapeTrainConfig, device: torch.device,
-                log=print) -> list[dict]:
+def shape_curve(
+    data: dict[str, torch.Tensor], fractions: list[float], cfg: ShapeTrainConfig, device: torch.device, log=print
+) -> list[dict]:
     """Held-out IoU of S against corpus size (`train.growing_subsets`)."""
     rows = []
     for row, use in growing_subsets(data["object"], data["holdout"], fractions, cfg.seed):

@@ -65,8 +65,9 @@ def hull_bce(logits: torch.Tensor, x: torch.Tensor, y: torch.Tensor, object_weig
 
 
 @torch.no_grad()
-def held_out_scores(model: torch.nn.Module, data: dict, device: torch.device, keep_above: float = 0.5
-                    ) -> dict[str, float]:
+def held_out_scores(
+    model: torch.nn.Module, data: dict, device: torch.device, keep_above: float = 0.5
+) -> dict[str, float]:
     """3D IoU with the many-view hull of the strict hull and of what V keeps (p >= keep_above), the
     share of the excess V removes and of the object it loses."""
     idx = data["holdout"].nonzero()[:, 0]
@@ -84,15 +85,19 @@ def held_out_scores(model: torch.nn.Module, data: dict, device: torch.device, ke
         true_total += float(y.sum())
         excess += float((hull & ~y).sum())
         cut += float((hull & ~y & ~keep).sum())
-    return {"hull_iou": inter["hull"] / max(union["hull"], 1), "V_iou": inter["V"] / max(union["V"], 1),
-            "excess_cut": cut / max(excess, 1), "object_lost": lost / max(true_total, 1)}
+    return {
+        "hull_iou": inter["hull"] / max(union["hull"], 1),
+        "V_iou": inter["V"] / max(union["V"], 1),
+        "excess_cut": cut / max(excess, 1),
+        "object_lost": lost / max(true_total, 1),
+    }
 
 
 def train_volume(data: dict, cfg: VolumeTrainConfig, device: torch.device, log=print) -> tuple[VolumeNet, dict]:
     """Train V on the non-held-out pairs (`training.loop`); returns the EMA model and its curve."""
     torch.manual_seed(cfg.seed)
     gen = torch.Generator().manual_seed(cfg.seed)
-    model = VolumeNet(cfg.net).to(device=device, memory_format=torch.channels_last_3d)
+    model = VolumeNet(cfg.net).to(device=device, memory_format=torch.channels_last_3d)  # type: ignore[call-overload]
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=1e-4)
     train_idx = (~data["holdout"]).nonzero()[:, 0]
     if train_idx.numel() == 0:
@@ -107,10 +112,12 @@ def train_volume(data: dict, cfg: VolumeTrainConfig, device: torch.device, log=p
 
     def report(st: FitState) -> None:
         s = st.curve["val"][-1] if st.curve["val"] else {}
-        log(f"V: step {st.step}/{cfg.steps} loss {st.curve['loss'][-1]:.4f} held-out 3D IoU "
+        log(
+            f"V: step {st.step}/{cfg.steps} loss {st.curve['loss'][-1]:.4f} held-out 3D IoU "
             f"V {s.get('V_iou', float('nan')):.3f} hull {s.get('hull_iou', float('nan')):.3f}, excess cut "
             f"{s.get('excess_cut', float('nan')):.3f}, object lost {s.get('object_lost', float('nan')):.3f} "
-            f"({time.perf_counter() - t0:.0f} s)")
+            f"({time.perf_counter() - t0:.0f} s)"
+        )
 
     t0 = time.perf_counter()
     evaluate = (lambda m: held_out_scores(m, data, device)) if data["holdout"].any() else None

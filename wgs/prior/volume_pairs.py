@@ -67,8 +67,14 @@ def object_volume_pairs(scene_dir: Path, work: Path, subsets: int, resolution: i
     return {"x": np.stack(xs), "y": np.stack(ys)}
 
 
-def build_volume_pairs(cache: Path, subsets: int = 16, resolution: int = 32, limit: int | None = None,
-                       workers: int = 1, shard: tuple[int, int] = (0, 1)) -> int:
+def build_volume_pairs(
+    cache: Path,
+    subsets: int = 16,
+    resolution: int = 32,
+    limit: int | None = None,
+    workers: int = 1,
+    shard: tuple[int, int] = (0, 1),
+) -> int:
     """Pairs for every rendered corpus object without them yet (cache/volume_pairs/)."""
     if workers > 1:
         return sum(in_processes(build_volume_pairs, workers, cache, subsets, resolution, limit))
@@ -79,9 +85,12 @@ def build_volume_pairs(cache: Path, subsets: int = 16, resolution: int = 32, lim
         if i % shard[1] != shard[0] or out.is_file():
             continue
         t0 = time.perf_counter()
-        arrays = save_object_pairs(out, cache / "work" / f"volume-{meta['name']}", meta,
-                                   partial(object_volume_pairs, cache / "objects" / meta["name"], subsets=subsets,
-                                           resolution=resolution))
+        arrays = save_object_pairs(
+            out,
+            cache / "work" / f"volume-{meta['name']}",
+            meta,
+            partial(object_volume_pairs, cache / "objects" / meta["name"], subsets=subsets, resolution=resolution),
+        )
         if arrays is None:
             continue
         made += 1

@@ -32,5 +32,9 @@ class Camera:
 
     @staticmethod
     def from_json(d: dict[str, Any]) -> Camera:
-        return Camera(torch.tensor(d["K"], dtype=torch.float32), torch.tensor(d["viewmat"], dtype=torch.float32),
-                      int(d["width"]), int(d["height"]))
+        return Camera(
+            torch.tensor(d["K"], dtype=torch.float32),
+            torch.tensor(d["viewmat"], dtype=torch.float32),
+            int(d["width"]),
+            int(d["height"]),
+        )

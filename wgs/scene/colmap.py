@@ -40,8 +40,9 @@ def camera_K(cam: pycolmap.Camera) -> np.ndarray:
     return np.asarray(cam.calibration_matrix(), dtype=np.float64)
 
 
-def read_colmap_scene(root: Path, model_dir: Path | None = None, image_dir: Path | None = None,
-                      fmt: str = "colmap") -> RawScene:
+def read_colmap_scene(
+    root: Path, model_dir: Path | None = None, image_dir: Path | None = None, fmt: str = "colmap"
+) -> RawScene:
     """A COLMAP scene folder: sparse model + images/ (+ masks/). `model_dir` and `image_dir` name
     them elsewhere (photos posed by `wgs prepare`: the model in the workspace)."""
     model_dir = model_dir or find_model_dir(root)
@@ -79,8 +80,9 @@ def read_colmap_scene(root: Path, model_dir: Path | None = None, image_dir: Path
     return RawScene(root, fmt, views, notes=notes, metadata_files=files)
 
 
-def undistort(img: np.ndarray, dist: Distortion, K: np.ndarray, width: int, height: int,
-              extra: list[np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+def undistort(
+    img: np.ndarray, dist: Distortion, K: np.ndarray, width: int, height: int, extra: list[np.ndarray] | None = None
+) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
     """Undistort [H, W, C] float image (and extra [H, W] maps such as masks) to a pinhole camera.
 
     Returns the undistorted image, its K, and the undistorted extra maps.
@@ -101,8 +103,13 @@ def undistort(img: np.ndarray, dist: Distortion, K: np.ndarray, width: int, heig
 def camera_to_colmap(camera: Camera, camera_id: int) -> tuple[pycolmap.Camera, pycolmap.Rigid3d]:
     """A PINHOLE COLMAP camera and the image's cam_from_world pose of `camera`."""
     K, w2c = camera.K.double().numpy(), camera.viewmat.double().numpy()
-    cam = pycolmap.Camera(camera_id=camera_id, model="PINHOLE", width=int(camera.width), height=int(camera.height),
-                          params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+    cam = pycolmap.Camera(
+        camera_id=camera_id,
+        model="PINHOLE",
+        width=int(camera.width),
+        height=int(camera.height),
+        params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]],
+    )
     return cam, pycolmap.Rigid3d(pycolmap.Rotation3d(w2c[:3, :3]), w2c[:3, 3])
 
 

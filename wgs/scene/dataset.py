@@ -35,11 +35,26 @@ class Frame(Camera):
     mask: torch.Tensor | None = None
     shows_colour: bool = True
 
+    @property
+    def pixels(self) -> torch.Tensor:
+        """The image, for code that needs it loaded (training views, test views being scored)."""
+        if self.image is None:
+            raise ValueError(f"{self.name}: image not loaded")
+        return self.image
+
+    @property
+    def object_pixels(self) -> torch.Tensor:
+        """The mask's object pixels (bool [H, W]), for code that needs a mask."""
+        if self.mask is None:
+            raise ValueError(f"{self.name}: no mask")
+        return self.mask > 0.5
+
 
 def halved(frame: Frame) -> Frame:
     """The frame at half its size (odd sizes drop their last row or column): each pixel the mean of
     a 2x2 block, so that compositing on a background commutes with the halving (the colour is
     averaged premultiplied by the mask); the intrinsics halved, since pixel centres lie at +0.5."""
+
     def pool(t: torch.Tensor) -> torch.Tensor:  # [H, W, C] -> [H/2, W/2, C]
         return torch.nn.functional.avg_pool2d(t.permute(2, 0, 1)[None], 2)[0].permute(1, 2, 0)
 
@@ -48,7 +63,7 @@ def halved(frame: Frame) -> Frame:
     mask = pool(frame.mask[..., None])[..., 0] if frame.mask is not None else None
     image = frame.image
     if image is not None:
-        if frame.mask is None:
+        if frame.mask is None or mask is None:
             image = pool(image)
         else:
             covered = pool(image * frame.mask[..., None])
@@ -111,8 +126,9 @@ def load_prepared(sdir: Path, load_test_images: bool = False) -> PreparedScene:
     if mirror.get("used"):  # the photos' mirror images are training views too (shape.symmetry)
         plane = MirrorPlane.from_json(mirror["plane"])
         train += [mirror_frame(f, plane, shows_colour=mirror.get("views") == "full") for f in train]
-    return PreparedScene(info, Normalisation.from_json(info["normalisation"]), train,
-                         frames(info["test_names"], load_test_images))
+    return PreparedScene(
+        info, Normalisation.from_json(info["normalisation"]), train, frames(info["test_names"], load_test_images)
+    )
 
 
 def composite(image: torch.Tensor, mask: torch.Tensor | None, background: torch.Tensor) -> torch.Tensor:

@@ -39,8 +39,9 @@ def detect_format(root: Path) -> str:
         return "photos"
     found = sorted(p.name + ("/" if p.is_dir() else "") for p in root.iterdir())[:20]
     expected = "; ".join(f"{k}: {v}" for k, v in FORMATS.items())
-    raise InputError(f"no known scene format. Found: {', '.join(found) or '(empty folder)'}. Expected one of "
-                     f"{expected}", root)
+    raise InputError(
+        f"no known scene format. Found: {', '.join(found) or '(empty folder)'}. Expected one of {expected}", root
+    )
 
 
 def read_scene(root: str | Path, sfm_model: Path | None = None) -> RawScene:
@@ -55,11 +56,18 @@ def read_scene(root: str | Path, sfm_model: Path | None = None) -> RawScene:
     if fmt == "photos":
         if sfm_model is None:
             raise InputError("photos without poses: `wgs prepare` poses them (structure-from-motion)", root)
-        image_dir, _, _ = find_photos(root)
-        scene = read_colmap_scene(root, sfm_model, image_dir, fmt="photos")
+        found = find_photos(root)
+        if found is None:
+            raise InputError("no photos found", root)
+        scene = read_colmap_scene(root, sfm_model, found[0], fmt="photos")
     else:
-        reader = {"blender": read_blender_scene, "ngp": read_ngp_scene, "colmap": read_colmap_scene,
-                  "idr": read_idr_scene, "llff": read_llff_scene}[fmt]
+        reader = {
+            "blender": read_blender_scene,
+            "ngp": read_ngp_scene,
+            "colmap": read_colmap_scene,
+            "idr": read_idr_scene,
+            "llff": read_llff_scene,
+        }[fmt]
         scene = reader(root)
     if not scene.views:
         raise InputError(f"{fmt} scene has no usable images", root)
@@ -73,8 +81,14 @@ def check_cameras(scene: RawScene) -> None:
     source = scene.metadata_files[0] if scene.metadata_files else scene.root
     for v in scene.views:
         K = v.K
-        ok = (np.isfinite(v.w2c).all() and np.isfinite(K).all() and K[0, 0] > 0 and K[1, 1] > 0
-              and np.abs(v.w2c).max() < 1e9)
+        ok = (
+            np.isfinite(v.w2c).all()
+            and np.isfinite(K).all()
+            and K[0, 0] > 0
+            and K[1, 1] > 0
+            and np.abs(v.w2c).max() < 1e9
+        )
         if not ok:
-            raise InputError(f"camera of {v.name} is not finite, has a focal length <= 0 or lies over 1e9 units "
-                             "away", source)
+            raise InputError(
+                f"camera of {v.name} is not finite, has a focal length <= 0 or lies over 1e9 units away", source
+            )

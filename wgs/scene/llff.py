@@ -36,8 +36,11 @@ def _image_dir(root: Path) -> Path | None:
     """images/, else the least downscaled images_K/."""
     if (root / "images").is_dir():
         return root / "images"
-    scaled = sorted((int(m.group(1)), p) for p in root.glob("images_*")
-                    if p.is_dir() and (m := re.fullmatch(r"images_(\d+)", p.name)))
+    scaled = sorted(
+        (int(m.group(1)), p)
+        for p in root.glob("images_*")
+        if p.is_dir() and (m := re.fullmatch(r"images_(\d+)", p.name))
+    )
     return scaled[0][1] if scaled else None
 
 

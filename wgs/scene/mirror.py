@@ -54,6 +54,13 @@ def mirror_frame(frame, plane: MirrorPlane, shows_colour: bool = True):
     F = torch.diag(torch.tensor([-1.0, 1.0, 1.0, 1.0], dtype=frame.viewmat.dtype))
     K = frame.K.clone()
     K[0, 2] = frame.width - K[0, 2]
-    flip = (lambda t: t.flip(1).contiguous() if t is not None else None)  # noqa: E731
-    return replace(frame, K=K, viewmat=F @ frame.viewmat @ M, name=mirror_name(frame.name),
-                   image=flip(frame.image), mask=flip(frame.mask), shows_colour=shows_colour)
+    flip = lambda t: t.flip(1).contiguous() if t is not None else None  # noqa: E731
+    return replace(
+        frame,
+        K=K,
+        viewmat=F @ frame.viewmat @ M,
+        name=mirror_name(frame.name),
+        image=flip(frame.image),
+        mask=flip(frame.mask),
+        shows_colour=shows_colour,
+    )

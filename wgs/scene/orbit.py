@@ -65,13 +65,15 @@ def orbit_frames(train: list[Frame], n: int) -> list[Frame]:
     out = []
     for i in range(n):
         w2c = look_at(orb.point(2 * math.pi * i / n), np.zeros(3), orb.up)
-        out.append(Frame(f0.K.clone(), torch.tensor(w2c, dtype=torch.float32), f0.width, f0.height,
-                         name=f"path_{i:03d}.png"))
+        out.append(
+            Frame(f0.K.clone(), torch.tensor(w2c, dtype=torch.float32), f0.width, f0.height, name=f"path_{i:03d}.png")
+        )
     return out
 
 
-def novel_views(train: list[Frame], per_pair: int, lo: float = 0.3, hi: float = 0.7, seed: int = 0
-                ) -> list[tuple[Frame, float]]:
+def novel_views(
+    train: list[Frame], per_pair: int, lo: float = 0.3, hi: float = 0.7, seed: int = 0
+) -> list[tuple[Frame, float]]:
     """Viewpoints between azimuthally neighbouring training cameras.
 
     For each neighbour pair (sorted by angle on the fitted orbit, wrapping around), `per_pair`
@@ -98,8 +100,13 @@ def novel_views(train: list[Frame], per_pair: int, lo: float = 0.3, hi: float = 
             eye = orb.point(angles[a] + s * da, ha + s * (hb - ha), ra + s * (rb - ra))
             near = train[a] if s < 0.5 else train[b]
             w2c = look_at(eye, np.zeros(3), orb.up)
-            frame = Frame(near.K.clone(), torch.tensor(w2c, dtype=torch.float32), near.width, near.height,
-                          name=f"novel_{j:02d}_{k:02d}.png")
+            frame = Frame(
+                near.K.clone(),
+                torch.tensor(w2c, dtype=torch.float32),
+                near.width,
+                near.height,
+                name=f"novel_{j:02d}_{k:02d}.png",
+            )
             dist = min(float(np.linalg.norm(eye - c)) for c in centers)
             out.append((frame, dist))
     return out
@@ -127,6 +134,16 @@ def sphere_views(train: list[Frame], n: int, below_deg: float, above_deg: float)
         d = np.linalg.norm(centers - eye, axis=1)
         near = train[int(d.argmin())]
         w2c = look_at(eye, np.zeros(3), orb.up)
-        out.append((Frame(near.K.clone(), torch.tensor(w2c, dtype=torch.float32), near.width, near.height,
-                          name=f"sphere_{i:03d}.png"), float(d.min())))
+        out.append(
+            (
+                Frame(
+                    near.K.clone(),
+                    torch.tensor(w2c, dtype=torch.float32),
+                    near.width,
+                    near.height,
+                    name=f"sphere_{i:03d}.png",
+                ),
+                float(d.min()),
+            )
+        )
     return out

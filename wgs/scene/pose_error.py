@@ -21,7 +21,7 @@ def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.nda
     if np.linalg.det(U) * np.linalg.det(Vt) < 0:
         D[2, 2] = -1.0
     R = U @ D @ Vt
-    var = (a ** 2).sum() / len(src)
+    var = (a**2).sum() / len(src)
     s = float(np.trace(np.diag(S) @ D) / var) if var > 0 else 1.0
     return s, R, mu_d - s * R @ mu_s
 
@@ -48,8 +48,11 @@ def pose_errors(est_w2c: np.ndarray, ref_w2c: np.ndarray) -> dict[str, np.ndarra
     cos = (np.trace(rel, axis1=1, axis2=2) - 1) / 2
     axis = np.stack([rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0], rel[:, 1, 0] - rel[:, 0, 1]], -1)
     sin = np.linalg.norm(axis, axis=-1) / 2  # atan2 stays exact near 0 degrees, where arccos does not
-    return {"rotation_deg": np.degrees(np.arctan2(sin, cos)),
-            "center": np.linalg.norm(aligned - c_ref, axis=1) / max(extent, 1e-12), "scale": s}
+    return {
+        "rotation_deg": np.degrees(np.arctan2(sin, cos)),
+        "center": np.linalg.norm(aligned - c_ref, axis=1) / max(extent, 1e-12),
+        "scale": s,
+    }
 
 
 __all__ = ["umeyama", "centers", "pose_errors"]

@@ -22,7 +22,7 @@ from scipy.ndimage import binary_dilation
 
 from ..errors import InputError
 from ..io.images import IMAGE_EXTS, find_with_stem, image_size, read_image, to_mask, write_png
-from ..progress import log, progress_bar
+from ..progress import BAR, log, progress_bar
 from .native_colmap import pycolmap
 
 MATCHERS = ("auto", "exhaustive", "sequential")
@@ -33,9 +33,11 @@ FEW_PHOTOS = 10  # below this, say that structure-from-motion needs more overlap
 MAX_FEATURES = 8192
 SEQUENTIAL_OVERLAP = 10  # sequential matching: each photo with its next 10 (by name)
 
-HOW_TO_POSE = ("structure-from-motion needs many overlapping photos (20 or more around the object, "
-               "neighbours sharing most of their view): pose a denser capture with `wgs prepare`, then train on "
-               "4 of them with `--views 4` (or list them in sparse_4.txt)")
+HOW_TO_POSE = (
+    "structure-from-motion needs many overlapping photos (20 or more around the object, "
+    "neighbours sharing most of their view): pose a denser capture with `wgs prepare`, then train on "
+    "4 of them with `--views 4` (or list them in sparse_4.txt)"
+)
 
 
 @dataclass
@@ -88,11 +90,12 @@ def _watched(description: str, total: int, poll: Callable[[], int]) -> Iterator[
     """A progress bar fed by polling `poll()` while the step runs (pycolmap releases the GIL)."""
     done = threading.Event()
     with progress_bar(description, total) as prog:
+
         def watch() -> None:
             while not done.wait(0.5):
                 n = poll()
                 if n >= 0:
-                    prog.update(0, completed=min(n, total))
+                    prog.update(BAR, completed=min(n, total))
 
         t = threading.Thread(target=watch, daemon=True)
         t.start()
@@ -101,7 +104,7 @@ def _watched(description: str, total: int, poll: Callable[[], int]) -> Iterator[
         finally:
             done.set()
             t.join()
-            prog.update(0, completed=total)
+            prog.update(BAR, completed=total)
 
 
 @contextlib.contextmanager
@@ -115,8 +118,15 @@ def _colmap_quiet() -> Iterator[None]:
         pycolmap.logging.minloglevel = old
 
 
-def pose_photos(image_dir: Path, names: list[str], mask_dir: Path | None, out: Path, matcher: str,
-                max_image_size: int, threads: int = 1) -> SfmResult:
+def pose_photos(
+    image_dir: Path,
+    names: list[str],
+    mask_dir: Path | None,
+    out: Path,
+    matcher: str,
+    max_image_size: int,
+    threads: int = 1,
+) -> SfmResult:
     """Run structure-from-motion on `names` in `image_dir`; the largest model goes to `out/`
     (written whole or not at all). `matcher`: auto, exhaustive or sequential; SIFT runs on the
     photos downscaled to `max_image_size`. Raises InputError when too few photos register."""
@@ -147,9 +157,15 @@ def pose_photos(image_dir: Path, names: list[str], mask_dir: Path | None, out: P
         matching.num_threads = threads
         with _colmap_quiet():
             with _watched("sfm: features", n, lambda: _count(db, "SELECT COUNT(*) FROM keypoints")):
-                pycolmap.extract_features(db, image_dir, image_names=names, camera_mode=camera_mode,
-                                          reader_options=reader, extraction_options=extraction,
-                                          device=pycolmap.Device.cpu)
+                pycolmap.extract_features(
+                    db,
+                    image_dir,
+                    image_names=names,
+                    camera_mode=camera_mode,
+                    reader_options=reader,
+                    extraction_options=extraction,
+                    device=pycolmap.Device.cpu,
+                )
             if matcher == "exhaustive":
                 pairs = n * (n - 1) // 2
                 with _watched(f"sfm: match ({matcher})", pairs, lambda: _count(db, "SELECT COUNT(*) FROM matches")):
@@ -160,27 +176,36 @@ def pose_photos(image_dir: Path, names: list[str], mask_dir: Path | None, out: P
                 pairing.loop_detection = False  # needs a vocabulary tree: nothing downloads
                 pairs = sum(min(SEQUENTIAL_OVERLAP, n - 1 - i) for i in range(n))
                 with _watched(f"sfm: match ({matcher})", pairs, lambda: _count(db, "SELECT COUNT(*) FROM matches")):
-                    pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing,
-                                              device=pycolmap.Device.cpu)
+                    pycolmap.match_sequential(
+                        db, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu
+                    )
             mapping = pycolmap.IncrementalPipelineOptions()
             mapping.num_threads = threads
             mapping.random_seed = 0
             registered = [0]
             with progress_bar("sfm: register", n) as prog:
+
                 def next_image() -> None:
                     registered[0] += 1
-                    prog.update(0, completed=min(registered[0] + 1, n))
+                    prog.update(BAR, completed=min(registered[0] + 1, n))
 
-                models = pycolmap.incremental_mapping(db, image_dir, tmp / "sparse", options=mapping,
-                                                      next_image_callback=next_image)
+                models = pycolmap.incremental_mapping(
+                    db, image_dir, tmp / "sparse", options=mapping, next_image_callback=next_image
+                )
                 best = max(models.values(), key=lambda r: r.num_reg_images(), default=None)
-                prog.update(0, completed=best.num_reg_images() if best is not None else 0)
+                prog.update(BAR, completed=best.num_reg_images() if best is not None else 0)
         n_reg = best.num_reg_images() if best is not None else 0
         if n_reg < max(MIN_REGISTERED, MIN_SHARE * n):
-            hint = HOW_TO_POSE if n < FEW_PHOTOS else (
-                "try photos with more overlap between neighbours, masks (masks/ beside images/) on a turntable, "
-                + ("or --matcher exhaustive" if matcher == "sequential" else "or more texture in view"))
+            hint = (
+                HOW_TO_POSE
+                if n < FEW_PHOTOS
+                else (
+                    "try photos with more overlap between neighbours, masks (masks/ beside images/) on a turntable, "
+                    + ("or --matcher exhaustive" if matcher == "sequential" else "or more texture in view")
+                )
+            )
             raise InputError(f"structure-from-motion registered {n_reg} of {n} photos: {hint}", image_dir)
+        assert best is not None  # registered enough photos
         model = tmp / "model"
         model.mkdir()
         best.write(str(model))

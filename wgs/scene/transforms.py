@@ -144,6 +144,16 @@ def read_ngp_scene(root: Path) -> RawScene:
             mask = safe_join(root, frame["mask_path"], path)
             if not mask.is_file():
                 raise InputError(f"frame {i}: mask file {frame['mask_path']!r} not found", path)
-        views.append(View(img.relative_to(root).as_posix(), img, intrinsics(fx, fy, cx, cy),
-                          _pose(frame, path, i), w, h, mask, dist))
+        views.append(
+            View(
+                img.relative_to(root).as_posix(),
+                img,
+                intrinsics(fx, fy, cx, cy),
+                _pose(frame, path, i),
+                w,
+                h,
+                mask,
+                dist,
+            )
+        )
     return RawScene(root, "ngp", views, notes=notes, metadata_files=[path])

@@ -20,8 +20,9 @@ from ..scene.dataset import Frame
 from ..shape.hull import HullGrid, grid_centres, kept_box, pixel_lookup, silhouette, visual_hull_grid
 
 
-def votes_per_view(cameras: list[Camera], masks: list[torch.Tensor], points: torch.Tensor
-                   ) -> tuple[torch.Tensor, torch.Tensor]:
+def votes_per_view(
+    cameras: list[Camera], masks: list[torch.Tensor], points: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """For points [N, 3]: [V, N] bool, inside view v's mask, and [V, N] bool, inside its image."""
     inside, seen = [], []
     for cam, m in zip(cameras, masks, strict=True):
@@ -58,10 +59,17 @@ def vote_need(agreement: float, voters: torch.Tensor) -> int:
     return max(2, math.ceil(agreement * (int(voters.sum()) - 1)))
 
 
-def vote_grid(cameras: list[Camera], masks: list[torch.Tensor], voters: torch.Tensor, need: int,
-              resolution: int = 96, extent: float = 1.0) -> VoteGrid:
+def vote_grid(
+    cameras: list[Camera],
+    masks: list[torch.Tensor],
+    voters: torch.Tensor,
+    need: int,
+    resolution: int = 96,
+    extent: float = 1.0,
+) -> VoteGrid:
     """The views' votes on the box of the voxels that at least `need` voters hold (`hull.kept_box`),
     or on the whole [-extent, extent]³ where no voxel has that many."""
+
     def votes_at(points):
         inside, seen = votes_per_view(cameras, masks, points)
         return inside[voters].sum(0), (inside, seen)
@@ -74,8 +82,9 @@ def vote_grid(cameras: list[Camera], masks: list[torch.Tensor], voters: torch.Te
     return VoteGrid(lo, hi, resolution, inside, seen)
 
 
-def vote_silhouettes(cameras: list[Camera], grid: VoteGrid, voters: torch.Tensor, agreement: float,
-                     longest: int = 640, own: bool = True) -> list[torch.Tensor]:
+def vote_silhouettes(
+    cameras: list[Camera], grid: VoteGrid, voters: torch.Tensor, agreement: float, longest: int = 640, own: bool = True
+) -> list[torch.Tensor]:
     """Per view, [H, W] bool: the silhouette of the voxels that at least `agreement` of the other
     voters that see them hold (at least one must see them); with `own`, only those in the view's
     own mask."""
@@ -92,9 +101,16 @@ def vote_silhouettes(cameras: list[Camera], grid: VoteGrid, voters: torch.Tensor
     return out
 
 
-def supported(cameras: list[Camera], masks: list[torch.Tensor], agreement: float = 0.85, resolution: int = 96,
-              extent: float = 1.0, longest: int = 640, own: bool = True, voters: torch.Tensor | None = None
-              ) -> list[torch.Tensor]:
+def supported(
+    cameras: list[Camera],
+    masks: list[torch.Tensor],
+    agreement: float = 0.85,
+    resolution: int = 96,
+    extent: float = 1.0,
+    longest: int = 640,
+    own: bool = True,
+    voters: torch.Tensor | None = None,
+) -> list[torch.Tensor]:
     """Per view, [H, W] bool: pixels whose ray meets a voxel that at least `agreement` of the other
     views that see it hold in their masks (at least one other view must see it). Cameras in the
     normalised frame, where the object lies inside [-extent, extent]³. The grid's silhouettes are
@@ -109,26 +125,37 @@ def supported(cameras: list[Camera], masks: list[torch.Tensor], agreement: float
 def silhouette_at(grid: HullGrid, cam: Camera, longest: int = 640) -> torch.Tensor:
     """[H, W] bool: the grid's silhouette, drawn at most `longest` pixels wide and scaled up."""
     small = silhouette(grid, scaled(cam, longest))[0]
-    return torch.nn.functional.interpolate(small[None, None].float(), (cam.height, cam.width),
-                                           mode="nearest")[0, 0] > 0.5
+    return (
+        torch.nn.functional.interpolate(small[None, None].float(), (cam.height, cam.width), mode="nearest")[0, 0] > 0.5
+    )
 
 
 def hull_missed(cameras: list[Camera], masks: list[torch.Tensor], resolution: int = 96) -> list[float]:
     """Per view, the share of its mask [H, W] bool that the strict hull of all the masks leaves out.
     Masks of one object agree (about 0); a mask that misses part of the object cuts that part from
     every view, which the training masks' hull (wgs.shape.hull, tolerating no mask) then loses."""
-    frames = [Frame(c.K.float(), c.viewmat.float(), c.width, c.height, name=str(k), mask=m.float())
-              for k, (c, m) in enumerate(zip(cameras, masks, strict=True))]
+    frames = [
+        Frame(c.K.float(), c.viewmat.float(), c.width, c.height, name=str(k), mask=m.float())
+        for k, (c, m) in enumerate(zip(cameras, masks, strict=True))
+    ]
     try:
         grid = visual_hull_grid(frames, resolution, tolerate=0)
     except InputError:
         return [1.0] * len(frames)
-    return [float((m & ~silhouette_at(grid, f)).sum() / max(1, int(m.sum())))
-            for f, m in zip(frames, masks, strict=True)]
+    return [
+        float((m & ~silhouette_at(grid, f)).sum() / max(1, int(m.sum()))) for f, m in zip(frames, masks, strict=True)
+    ]
 
 
-def voting_views(cameras: list[Camera], masks: list[torch.Tensor], agreement: float, min_support: float,
-                 resolution: int = 96, extent: float = 1.0, longest: int = 160) -> tuple[torch.Tensor, list[float]]:
+def voting_views(
+    cameras: list[Camera],
+    masks: list[torch.Tensor],
+    agreement: float,
+    min_support: float,
+    resolution: int = 96,
+    extent: float = 1.0,
+    longest: int = 160,
+) -> tuple[torch.Tensor, list[float]]:
     """[V] bool, the views whose masks vote, and the share of each view's mask that the voters hold.
 
     A view whose mask shows something else (a pattern of the wall, half the object) cuts the object

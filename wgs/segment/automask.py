@@ -21,8 +21,16 @@ class AutoMasks:
     record: dict  # the model, the settings, what agreement removed and where it could not, the time per photo
 
 
-def automatic_masks(images: list[np.ndarray], cameras: list[Camera], agreement: float, model: str | None,
-                    threads: int, min_fraction: float, voter_support: float, colour_ratio: float) -> AutoMasks:
+def automatic_masks(
+    images: list[np.ndarray],
+    cameras: list[Camera],
+    agreement: float,
+    model: str | None,
+    threads: int,
+    min_fraction: float,
+    voter_support: float,
+    colour_ratio: float,
+) -> AutoMasks:
     """Object masks for `images` [H, W, 3] in [0, 1] taken by `cameras` (normalised frame).
 
     Order: the network's probability per photo; the views whose regions vote (`agreement.voting_views`:
@@ -41,9 +49,12 @@ def automatic_masks(images: list[np.ndarray], cameras: list[Camera], agreement: 
     raw = [torch.from_numpy(p > 0.5) for p in probs]
     cams = [Camera(c.K.float(), c.viewmat.float(), c.width, c.height) for c in cameras]
     voted = len(cams) >= 3
-    voting, held = (voting_views(cams, raw, agreement, voter_support) if voted
-                    else (torch.ones(len(cams), dtype=torch.bool), [1.0] * len(cams)))
-    support, theirs = raw, None
+    voting, held = (
+        voting_views(cams, raw, agreement, voter_support)
+        if voted
+        else (torch.ones(len(cams), dtype=torch.bool), [1.0] * len(cams))
+    )
+    support, theirs = raw, []  # theirs: with a vote only
     if voted:  # one vote: what the voters support within each view's mask, and what they alone call object
         grid = vote_grid(cams, raw, voting, vote_need(agreement, voting))
         support = vote_silhouettes(cams, grid, voting, agreement)
@@ -61,17 +72,24 @@ def automatic_masks(images: list[np.ndarray], cameras: list[Camera], agreement: 
         masks.append(m.astype(np.float32))
         cut.append(float((r.numpy() & ~m).sum() / max(1, r.numpy().sum())))
     seconds = time.perf_counter() - t0
-    return AutoMasks(masks, {
-        "model": net.record.to_json(), "agreement": agreement if len(cameras) >= 3 else None,
-        "cut_by_agreement": {"mean": float(np.mean(cut)), "max": float(np.max(cut))},
-        "without_agreement": alone,
-        "added_by_colour": {"mean": float(np.mean(added)) if added else 0.0,
-                            "max": float(np.max(added)) if added else 0.0},
-        "network_found_nothing": [k for k, r in enumerate(raw) if r.float().mean() < min_fraction],
-        "not_voting": [k for k in range(len(cams)) if not voting[k]],
-        "held_by_voters": [round(h, 3) for h in held],
-        "seconds_per_photo": round(seconds / max(1, len(images)), 3),
-        "network_seconds_per_photo": round(t_net / max(1, len(images)), 3)})
+    return AutoMasks(
+        masks,
+        {
+            "model": net.record.to_json(),
+            "agreement": agreement if len(cameras) >= 3 else None,
+            "cut_by_agreement": {"mean": float(np.mean(cut)), "max": float(np.max(cut))},
+            "without_agreement": alone,
+            "added_by_colour": {
+                "mean": float(np.mean(added)) if added else 0.0,
+                "max": float(np.max(added)) if added else 0.0,
+            },
+            "network_found_nothing": [k for k, r in enumerate(raw) if r.float().mean() < min_fraction],
+            "not_voting": [k for k in range(len(cams)) if not voting[k]],
+            "held_by_voters": [round(h, 3) for h in held],
+            "seconds_per_photo": round(seconds / max(1, len(images)), 3),
+            "network_seconds_per_photo": round(t_net / max(1, len(images)), 3),
+        },
+    )
 
 
 def mask_sheet(images: list[np.ndarray], masks: list[np.ndarray], height: int = 160, columns: int = 4) -> np.ndarray:
@@ -91,5 +109,5 @@ def mask_sheet(images: list[np.ndarray], masks: list[np.ndarray], height: int = 
     sheet = np.ones((rows * th, min(columns, len(tiles)) * tw, 3), np.float32)
     for k, t in enumerate(tiles):
         r, c = divmod(k, columns)
-        sheet[r * th: r * th + t.shape[0], c * tw: c * tw + t.shape[1]] = t
+        sheet[r * th : r * th + t.shape[0], c * tw : c * tw + t.shape[1]] = t
     return sheet

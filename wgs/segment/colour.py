@@ -14,8 +14,9 @@ def colour_cells(rgb: np.ndarray, bins: int = 8) -> np.ndarray:
     return (q[..., 0] * bins + q[..., 1]) * bins + q[..., 2]
 
 
-def complete(rgb: np.ndarray, mask: np.ndarray, allowed: np.ndarray, ratio: float, bins: int = 8,
-             margin_px: int = 3) -> np.ndarray:
+def complete(
+    rgb: np.ndarray, mask: np.ndarray, allowed: np.ndarray, ratio: float, bins: int = 8, margin_px: int = 3
+) -> np.ndarray:
     """`mask` [H, W] bool plus the pixels of `allowed` [H, W] bool (where the other views' vote puts
     object) whose colour is at least `ratio` times likelier among the mask's pixels than among the
     sure background (outside `allowed` grown by `margin_px`), cleaned (`refine.clean`). Likelihoods
@@ -26,7 +27,7 @@ def complete(rgb: np.ndarray, mask: np.ndarray, allowed: np.ndarray, ratio: floa
     background = ~ndimage.binary_dilation(allowed, iterations=margin_px)
     if not mask.any() or not background.any():
         return mask
-    n = bins ** 3
+    n = bins**3
     p_object = np.bincount(cells[mask], minlength=n) + 1.0
     p_background = np.bincount(cells[background], minlength=n) + 1.0
     likelier = (p_object / p_object.sum()) > ratio * (p_background / p_background.sum())

@@ -20,8 +20,10 @@ MODULE_FILE = ("rembg", "u2netp.onnx")
 INPUT_SIZE = 320  # the network's square input
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
-MISSING = (f"no salient-object model: install the package {PACKAGE} (`pip install {PACKAGE}`, a dependency of "
-           "wgs), pass --masks DIR with your own masks, or --masks none")
+MISSING = (
+    f"no salient-object model: install the package {PACKAGE} (`pip install {PACKAGE}`, a dependency of "
+    "wgs), pass --masks DIR with your own masks, or --masks none"
+)
 
 
 @dataclass(frozen=True)
@@ -46,15 +48,20 @@ def find_model(path: str | Path | None = None) -> tuple[Path, ModelRecord]:
             raise InputError("salient-object model not found", p)
         return p, ModelRecord(None, None, str(p), _sha256(p), "as given by the user")
     spec = importlib.util.find_spec(MODULE_FILE[0])
-    p = Path(spec.origin).parent / MODULE_FILE[1] if spec is not None and spec.origin else None
-    if p is None or not p.is_file():
+    packaged = Path(spec.origin).parent / MODULE_FILE[1] if spec is not None and spec.origin else None
+    if packaged is None or not packaged.is_file():
         raise InputError(MISSING)
     try:
         version = importlib.metadata.version(PACKAGE)
     except importlib.metadata.PackageNotFoundError:
         raise InputError(MISSING) from None
-    return p, ModelRecord(PACKAGE, version, f"{MODULE_FILE[0]}/{MODULE_FILE[1]}", _sha256(p),
-                          "package MIT; U^2-Net weights Apache-2.0")
+    return packaged, ModelRecord(
+        PACKAGE,
+        version,
+        f"{MODULE_FILE[0]}/{MODULE_FILE[1]}",
+        _sha256(packaged),
+        "package MIT; U^2-Net weights Apache-2.0",
+    )
 
 
 def _sha256(path: Path) -> str:
@@ -79,8 +86,9 @@ class SaliencyNet:
     def __call__(self, rgb: np.ndarray) -> np.ndarray:
         h, w = rgb.shape[:2]
         x = torch.from_numpy(np.ascontiguousarray(rgb[..., :3], dtype=np.float32)).permute(2, 0, 1)[None]
-        x = torch.nn.functional.interpolate(x, (INPUT_SIZE, INPUT_SIZE), mode="bilinear", antialias=True,
-                                            align_corners=False)
+        x = torch.nn.functional.interpolate(
+            x, (INPUT_SIZE, INPUT_SIZE), mode="bilinear", antialias=True, align_corners=False
+        )
         x = (x - torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1)) / torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)
         out = self.session.run(None, {self.input: x.numpy()})[0][:, :1]  # the fused side output
         prob = torch.nn.functional.interpolate(torch.from_numpy(out), (h, w), mode="bilinear", align_corners=False)

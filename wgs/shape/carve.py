@@ -11,6 +11,7 @@ pixel of a real mask that the hull covered stays covered, by restoring the carve
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -45,8 +46,9 @@ def sure_background(object_prob: torch.Tensor, params: CarveParams) -> torch.Ten
     return grow(object_prob, params.dilate_px) < params.empty_below
 
 
-def background_votes(grid: HullGrid, views: list[Camera], object_prob: list[torch.Tensor], params: CarveParams
-                     ) -> tuple[torch.Tensor, torch.Tensor]:
+def background_votes(
+    grid: HullGrid, views: Sequence[Camera], object_prob: list[torch.Tensor], params: CarveParams
+) -> tuple[torch.Tensor, torch.Tensor]:
     """For each occupied voxel (in occ.nonzero order): how many views see it [M] and how many call
     it background [M]."""
     pts = grid.centres()[grid.occ.reshape(-1)]
@@ -59,8 +61,13 @@ def background_votes(grid: HullGrid, views: list[Camera], object_prob: list[torc
     return seen, empty
 
 
-def carve(grid: HullGrid, views: list[Camera], object_prob: list[torch.Tensor], real: list,
-          params: CarveParams | None = None) -> tuple[HullGrid, dict[str, int]]:
+def carve(
+    grid: HullGrid,
+    views: Sequence[Camera],
+    object_prob: list[torch.Tensor],
+    real: list,
+    params: CarveParams | None = None,
+) -> tuple[HullGrid, dict[str, int]]:
     """The hull with the voxels the predicted silhouettes call background removed.
 
     views / object_prob: pseudo cameras and their predicted object probability [H, W] in [0, 1];
@@ -73,43 +80,49 @@ def carve(grid: HullGrid, views: list[Camera], object_prob: list[torch.Tensor], 
     return remove_voxels(grid, (empty >= params.min_views) & (ratio >= params.min_fraction), ratio, real, params)
 
 
-def carve_volume(grid: HullGrid, voxel_prob: torch.Tensor, real: list, params: CarveParams | None = None
-                 ) -> tuple[HullGrid, dict[str, int]]:
+def carve_volume(
+    grid: HullGrid, voxel_prob: torch.Tensor, real: list, params: CarveParams | None = None
+) -> tuple[HullGrid, dict[str, int]]:
     """The hull with the voxels whose object probability voxel_prob [M] (occupied voxels, occ.nonzero
     order) is under `volume_empty_below` removed; real and the counts as in `carve`."""
     params = params or CarveParams()
     return remove_voxels(grid, voxel_prob < params.volume_empty_below, 1.0 - voxel_prob, real, params)
 
 
-def carve_with_volume(model: torch.nn.Module, frames: list, grid: HullGrid, params: CarveParams, resolution: int
-                      ) -> tuple[HullGrid, dict]:
+def carve_with_volume(
+    model: torch.nn.Module, frames: list, grid: HullGrid, params: CarveParams, resolution: int
+) -> tuple[HullGrid, dict]:
     """V's carving of the hull (`carve_volume`), checked on the object's own evidence first: each
     training mask against the hull of the other masks (at `resolution`), carved by V and not. Where V
     makes that leave-one-out IoU worse by more than `volume_check_margin`, the hull stays as it is.
     Returns the grid and a record: the counts, the two leave-one-out IoUs (3 or more frames), used."""
+
     def by_volume(g: HullGrid, others: list) -> HullGrid:
         return carve_volume(g, occupied_probability(model, others, g), others, params)[0]
 
     check: dict = {}
-    if len(frames) >= 3:
-        check = {"leave_one_out_iou": mean_scores(leave_one_out(frames, resolution))["iou"],
-                 "leave_one_out_iou_carved": mean_scores(leave_one_out(frames, resolution, carve=by_volume))["iou"]}
+    plain = mean_scores(leave_one_out(frames, resolution)) if len(frames) >= 3 else None
+    carved_loo = mean_scores(leave_one_out(frames, resolution, carve=by_volume)) if plain is not None else None
+    if plain is not None and carved_loo is not None:
+        check = {"leave_one_out_iou": plain["iou"], "leave_one_out_iou_carved": carved_loo["iou"]}
         if check["leave_one_out_iou_carved"] < check["leave_one_out_iou"] - params.volume_check_margin:
             return grid, {**check, "used": False}
     carved, counts = carve_volume(grid, occupied_probability(model, frames, grid), frames, params)
     return carved, {**counts, **check, "used": True}
 
 
-def remove_voxels(grid: HullGrid, drop: torch.Tensor, certainty: torch.Tensor, real: list, params: CarveParams
-                  ) -> tuple[HullGrid, dict[str, int]]:
+def remove_voxels(
+    grid: HullGrid, drop: torch.Tensor, certainty: torch.Tensor, real: list, params: CarveParams
+) -> tuple[HullGrid, dict[str, int]]:
     """Remove the occupied voxels marked in drop [M] (at most `max_carve` of them, the highest
     certainty [M] first), then restore what the real masks need."""
     flat = grid.occ.reshape(-1)
     occupied = flat.nonzero()[:, 0]
     limit = int(params.max_carve * occupied.numel())
     if int(drop.sum()) > limit:  # the most certain first
-        order = torch.argsort(torch.where(drop, certainty, torch.full_like(certainty, -1.0)), descending=True,
-                              stable=True)
+        order = torch.argsort(
+            torch.where(drop, certainty, torch.full_like(certainty, -1.0)), descending=True, stable=True
+        )
         drop = torch.zeros_like(drop)
         drop[order[:limit]] = True
     new = flat.clone()

@@ -8,6 +8,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from ..models.storage import config_of
 from ..scene.camera import Camera
 from .hull import HullGrid, silhouette
 
@@ -25,8 +26,9 @@ def hull_channels(grid: HullGrid, camera: Camera) -> tuple[torch.Tensor, torch.T
     return cover.float(), rel
 
 
-def silhouette_inputs(rgb: torch.Tensor, alpha: torch.Tensor, hull: torch.Tensor, hull_depth: torch.Tensor
-                      ) -> torch.Tensor:
+def silhouette_inputs(
+    rgb: torch.Tensor, alpha: torch.Tensor, hull: torch.Tensor, hull_depth: torch.Tensor
+) -> torch.Tensor:
     """rgb [H, W, 3], alpha [H, W], hull [H, W], hull_depth [H, W] -> S's input [6, H, W]."""
     return torch.cat([rgb.permute(2, 0, 1), alpha[None], hull[None], hull_depth[None]], 0).float()
 
@@ -37,8 +39,13 @@ def to_work_size(x: torch.Tensor, size: int) -> torch.Tensor:
     scale = size / max(h, w)
     if abs(scale - 1) < 1e-6:
         return x
-    return F.interpolate(x, size=(max(1, round(h * scale)), max(1, round(w * scale))), mode="bilinear",
-                         align_corners=False, antialias=scale < 1)
+    return F.interpolate(
+        x,
+        size=(max(1, round(h * scale)), max(1, round(w * scale))),
+        mode="bilinear",
+        align_corners=False,
+        antialias=scale < 1,
+    )
 
 
 @torch.no_grad()
@@ -52,7 +59,7 @@ def predict_batch(model: torch.nn.Module, inputs: torch.Tensor) -> torch.Tensor:
     """S's object probability [B, H, W] for inputs [B, 6, H, W]."""
     h, w = inputs.shape[-2:]
     dev = next(model.parameters()).device
-    prob = torch.sigmoid(model(to_work_size(inputs, model.config.work_size).to(dev))).cpu()
+    prob = torch.sigmoid(model(to_work_size(inputs, config_of(model).work_size).to(dev))).cpu()
     if prob.shape[-2:] != (h, w):
         prob = F.interpolate(prob, size=(h, w), mode="bilinear", align_corners=False)
     return prob[:, 0]

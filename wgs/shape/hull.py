@@ -23,9 +23,11 @@ from ..errors import InputError
 from ..io import atomic_write_bytes
 from ..scene.camera import Camera
 
-EMPTY_HULL = ("the visual hull of the training masks is empty: the training views share no object region. "
-              "Check that the masks are white on the object, that every training view sees it, and that the "
-              "poses are right (camera-to-world vs world-to-camera, OpenGL vs OpenCV axes)")
+EMPTY_HULL = (
+    "the visual hull of the training masks is empty: the training views share no object region. "
+    "Check that the masks are white on the object, that every training view sees it, and that the "
+    "poses are right (camera-to-world vs world-to-camera, OpenGL vs OpenCV axes)"
+)
 
 
 def project_points(points: torch.Tensor, viewmat: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -61,8 +63,9 @@ OFF_FRAME_RULE = "abstain"  # the rule every hull and vote takes (docs/experimen
 MIN_HOLDING_VIEWS = 3
 
 
-def mask_lookup(camera: Camera, mask: torch.Tensor, points: torch.Tensor, near: float = 0.01,
-                off_frame: str | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+def mask_lookup(
+    camera: Camera, mask: torch.Tensor, points: torch.Tensor, near: float = 0.01, off_frame: str | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Whether the object `mask` [H, W] of `camera` holds each point [N, 3], and whether the photo
     abstains on it: ([N] bool, [N] bool). A point behind the camera is not held; one outside the
     frame is not held where the mask's nearest border pixel is background, and is decided by
@@ -126,8 +129,13 @@ class HullGrid:
 def save_grid(path, grid: HullGrid) -> None:
     """The grid as an .npz: lo, hi and the occupancy bit-packed (written atomically)."""
     buf = io.BytesIO()
-    np.savez_compressed(buf, lo=grid.lo.numpy(), hi=grid.hi.numpy(), shape=np.array(grid.occ.shape),
-                        bits=np.packbits(grid.occ.numpy().reshape(-1)))
+    np.savez_compressed(
+        buf,
+        lo=grid.lo.numpy(),
+        hi=grid.hi.numpy(),
+        shape=np.array(grid.occ.shape),
+        bits=np.packbits(grid.occ.numpy().reshape(-1)),
+    )
     atomic_write_bytes(path, buf.getvalue())
 
 
@@ -139,8 +147,9 @@ def load_grid(path) -> HullGrid:
 
 
 def grid_centres(lo: torch.Tensor, hi: torch.Tensor, resolution: int) -> torch.Tensor:
-    axes = [(torch.arange(resolution, dtype=torch.float32) + 0.5) / resolution * (hi[i] - lo[i]) + lo[i]
-            for i in range(3)]
+    axes = [
+        (torch.arange(resolution, dtype=torch.float32) + 0.5) / resolution * (hi[i] - lo[i]) + lo[i] for i in range(3)
+    ]
     return torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
 
 
@@ -157,8 +166,9 @@ def mask_votes(frames, points: torch.Tensor, near: float = 0.01) -> tuple[torch.
     return votes, col_sum / votes.clamp_min(1)[:, None].float()
 
 
-def hull_votes_torch(frames, points: torch.Tensor, tolerate: int, near: float = 0.01,
-                     off_frame: str | None = None) -> torch.Tensor:
+def hull_votes_torch(
+    frames, points: torch.Tensor, tolerate: int, near: float = 0.01, off_frame: str | None = None
+) -> torch.Tensor:
     """How many frames' masks hold each point [N, 3]: [N] int, -1 where more than `tolerate` masks
     leave it out (`mask_lookup`; a frame that abstains neither holds nor leaves out). A point that
     has been left out too often is not looked up again, so each view projects only what is still
@@ -174,8 +184,9 @@ def hull_votes_torch(frames, points: torch.Tensor, tolerate: int, near: float = 
     return torch.where(missed > tolerate, torch.full_like(votes, -1), votes)
 
 
-def hull_votes(frames, points: torch.Tensor, tolerate: int, near: float = 0.01,
-               off_frame: str | None = None) -> torch.Tensor:
+def hull_votes(
+    frames, points: torch.Tensor, tolerate: int, near: float = 0.01, off_frame: str | None = None
+) -> torch.Tensor:
     """`hull_votes_torch` on the CPU numba kernel (`votes_numba`): one pass over the points, each
     projected into one view after another until too many masks have left it out."""
     from .votes_numba import hull_votes as kernel
@@ -183,11 +194,18 @@ def hull_votes(frames, points: torch.Tensor, tolerate: int, near: float = 0.01,
     sizes = [f.width * f.height for f in frames]
     offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
     masks = np.concatenate([(f.mask.reshape(-1) > 0.5).to(torch.uint8).cpu().numpy() for f in frames])
-    votes = kernel(points.detach().to("cpu", torch.float32).contiguous().numpy(),
-                   np.stack([f.viewmat.detach().cpu().float().numpy() for f in frames]),
-                   np.stack([f.K.detach().cpu().float().numpy() for f in frames]), masks, offsets,
-                   np.array([f.width for f in frames], np.int64), np.array([f.height for f in frames], np.int64),
-                   int(tolerate), OFF_FRAME.index(off_frame or OFF_FRAME_RULE), np.float32(near))
+    votes = kernel(
+        points.detach().to("cpu", torch.float32).contiguous().numpy(),
+        np.stack([f.viewmat.detach().cpu().float().numpy() for f in frames]),
+        np.stack([f.K.detach().cpu().float().numpy() for f in frames]),
+        masks,
+        offsets,
+        np.array([f.width for f in frames], np.int64),
+        np.array([f.height for f in frames], np.int64),
+        int(tolerate),
+        OFF_FRAME.index(off_frame or OFF_FRAME_RULE),
+        np.float32(near),
+    )
     return torch.from_numpy(votes)
 
 
@@ -206,8 +224,9 @@ _hulls: OrderedDict[bytes, HullGrid] = OrderedDict()
 
 def _hull_key(frames, resolution: int, extent: float, near: float, tolerate: int, off_frame: str) -> bytes:
     """Digest of everything a hull depends on: the frames' cameras and masks, the grid and the rule."""
-    h = hashlib.blake2b(np.array([resolution, extent, near, tolerate, OFF_FRAME.index(off_frame)],
-                                 np.float64).tobytes(), digest_size=20)
+    h = hashlib.blake2b(
+        np.array([resolution, extent, near, tolerate, OFF_FRAME.index(off_frame)], np.float64).tobytes(), digest_size=20
+    )
     for f in frames:
         h.update(np.array([f.width, f.height], np.int64).tobytes())
         for t in (f.viewmat, f.K, f.mask):
@@ -215,8 +234,14 @@ def _hull_key(frames, resolution: int, extent: float, near: float, tolerate: int
     return h.digest()
 
 
-def visual_hull_grid(frames, resolution: int = 96, extent: float = 1.0, near: float = 0.01,
-                     tolerate: int | None = None, off_frame: str | None = None) -> HullGrid:
+def visual_hull_grid(
+    frames,
+    resolution: int = 96,
+    extent: float = 1.0,
+    near: float = 0.01,
+    tolerate: int | None = None,
+    off_frame: str | None = None,
+) -> HullGrid:
     """The hull of the frames' masks over [-extent, extent]³: a 32³ pass finds its bounding box, a
     second carves that box at `resolution`. `off_frame`: what a photo says outside its frame where
     the object runs out of it (`OFF_FRAME`). Returns a copy (callers may change it); raises
@@ -268,16 +293,19 @@ def kept_box(votes_at, need: int, resolution: int, extent: float = 1.0):
         hi = torch.where(touch_hi, (hi + step).clamp_max(extent), hi)
     if grown:
         cell, idx = (hi - lo) / resolution, occ.nonzero()
-        lo, hi = (torch.maximum(lo + (idx.min(0).values - 1) * cell, torch.full_like(lo, -extent)),
-                  torch.minimum(lo + (idx.max(0).values + 2) * cell, torch.full_like(hi, extent)))
+        lo, hi = (
+            torch.maximum(lo + (idx.min(0).values - 1) * cell, torch.full_like(lo, -extent)),
+            torch.minimum(lo + (idx.max(0).values + 2) * cell, torch.full_like(hi, extent)),
+        )
         result = votes_at(grid_centres(lo, hi, resolution))
     return lo, hi, result
 
 
 def _build_hull(frames, resolution: int, extent: float, near: float, tolerate: int, off_frame: str) -> HullGrid:
     need = votes_needed(len(frames), tolerate, off_frame)
-    lo, hi, (votes,) = kept_box(lambda pts: (hull_votes(frames, pts, tolerate, near, off_frame),), need,
-                                resolution, extent)
+    lo, hi, (votes,) = kept_box(
+        lambda pts: (hull_votes(frames, pts, tolerate, near, off_frame),), need, resolution, extent
+    )
     occ = (votes >= need).reshape(resolution, resolution, resolution)
     if not occ.any():
         raise InputError(EMPTY_HULL)
@@ -362,10 +390,17 @@ def silhouette(grid: HullGrid, camera: Camera) -> tuple[torch.Tensor, torch.Tens
     rays = box_rays(grid, camera)
     depth = torch.full((camera.height * camera.width,), math.inf)
     if rays.pixels.numel():
-        hit = first_hit(grid.occ.reshape(-1).to(torch.uint8).numpy(), grid.resolution,
-                        grid.lo.double().numpy(), grid.cell.double().numpy(), rays.origin.double().numpy(),
-                        rays.dirs.double().numpy(), rays.t_in.double().numpy(), rays.t_out.double().numpy(),
-                        rays.dt.double().numpy())
+        hit = first_hit(
+            grid.occ.reshape(-1).to(torch.uint8).numpy(),
+            grid.resolution,
+            grid.lo.double().numpy(),
+            grid.cell.double().numpy(),
+            rays.origin.double().numpy(),
+            rays.dirs.double().numpy(),
+            rays.t_in.double().numpy(),
+            rays.t_out.double().numpy(),
+            rays.dt.double().numpy(),
+        )
         depth[rays.pixels] = torch.from_numpy(hit)
     depth = depth.reshape(camera.height, camera.width)
     return torch.isfinite(depth), depth

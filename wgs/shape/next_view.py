@@ -57,8 +57,15 @@ def describe_direction(camera, photos) -> tuple[str, dict]:
     turn = (turn + 180.0) % 360.0 - 180.0
     side = "right" if float((eye - c) @ right) > 0 else "left"
     elev, elev_photo = elevation(eye), elevation(c)
-    height = ("from straight above" if elev > 75 else "from above" if elev > 45 else
-              "from below" if elev < -10 else "from the side")
+    height = (
+        "from straight above"
+        if elev > 75
+        else "from above"
+        if elev > 45
+        else "from below"
+        if elev < -10
+        else "from the side"
+    )
     rise = elev - elev_photo
     parts = [height]
     if elev <= 75 and abs(turn) >= 10:
@@ -67,8 +74,12 @@ def describe_direction(camera, photos) -> tuple[str, dict]:
         parts.append(f"{abs(rise):.0f} degrees {'higher' if rise > 0 else 'lower'} than photo {photo.name}")
     if len(parts) == 1:
         parts.append(f"near photo {photo.name}")
-    return ", ".join(parts), {"elevation_deg": round(elev, 1), "nearest_photo": photo.name,
-                              "turn_deg": round(turn, 1), "rise_deg": round(rise, 1)}
+    return ", ".join(parts), {
+        "elevation_deg": round(elev, 1),
+        "nearest_photo": photo.name,
+        "turn_deg": round(turn, 1),
+        "rise_deg": round(rise, 1),
+    }
 
 
 def suggest_view(core: HullGrid, loose: torch.Tensor, photos, candidates: int = CANDIDATES) -> dict:
@@ -80,8 +91,14 @@ def suggest_view(core: HullGrid, loose: torch.Tensor, photos, candidates: int = 
     best = int(np.argmax(counts))
     sentence, numbers = describe_direction(views[best], photos)
     n = max(int(loose.shape[0]), 1)
-    return {"camera": views[best], "bounds": counts[best] / n, "median_bounds": float(np.median(counts)) / n,
-            "loose_voxels": int(loose.shape[0]), "sentence": sentence, **numbers}
+    return {
+        "camera": views[best],
+        "bounds": counts[best] / n,
+        "median_bounds": float(np.median(counts)) / n,
+        "loose_voxels": int(loose.shape[0]),
+        "sentence": sentence,
+        **numbers,
+    }
 
 
 def preview(hull: HullGrid, core: HullGrid, loose: torch.Tensor, camera) -> np.ndarray:

@@ -19,9 +19,11 @@ from __future__ import annotations
 import statistics
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
+from ..fields import option
 from .carve import keep_real_coverage
 from .hull import HullGrid, grid_centres, silhouette
 from .opening import inscribed_distance, opening
@@ -35,13 +37,19 @@ CHECK_RESOLUTION = 64  # voxels along the hull's box where the steps are chosen 
 class OwnShapeParams:
     """The steps of `own_shape`, the one place of their defaults."""
 
-    shape_revolution: bool = True  # try the largest solid of revolution inside the hull
-    shape_smooth: bool = True  # round off the hull's corners at the largest radius the masks allow
+    shape_revolution: bool = option(
+        True,
+        "Shrink the visual hull to the largest solid of revolution inside it where the photos' masks allow it "
+        "(bottles, vases, cups).",
+    )
+    shape_smooth: bool = option(
+        True, "Round off the visual hull's corners at the largest radius the photos' masks allow."
+    )
     # a step is kept where its shape leaves out at most this share of the photos' masks (mean over
     # the photos) more than the hull does, at CHECK_RESOLUTION (generated objects: solids of
     # revolution about the best axis leave out at most 0.7 % for vases and bottles, at least 2.2 %
     # for boxes, mugs and tables; docs/shape.md)
-    shape_max_missed: float = 0.015
+    shape_max_missed: float = option(0.015, bounds=(0.0, 1.0))
 
 
 # radii the smooth step tries, as fractions of the radius of the largest ball inside the shape, the
@@ -68,8 +76,13 @@ def best_revolution(check: HullGrid, photos) -> tuple[float, str, torch.Tensor, 
     the line's place around it."""
     tried = [(missed_share(revolved(check, p, a), photos), name, p, a) for name, p, a in candidate_axes(check, photos)]
     _, name, point, axis = min(tried, key=lambda t: t[0])
-    return min(((missed_share(revolved(check, q, axis), photos), name, q, axis)
-                for q in shifted(point, axis, float(check.cell.min()))), key=lambda t: t[0])
+    return min(
+        (
+            (missed_share(revolved(check, q, axis), photos), name, q, axis)
+            for q in shifted(point, axis, float(check.cell.min()))
+        ),
+        key=lambda t: t[0],
+    )
 
 
 def own_shape(hull: HullGrid, photos, params: OwnShapeParams) -> tuple[HullGrid, dict]:
@@ -82,12 +95,18 @@ def own_shape(hull: HullGrid, photos, params: OwnShapeParams) -> tuple[HullGrid,
     check = resampled(hull, CHECK_RESOLUTION)
     base = missed_share(check, photos)
     limit = base + params.shape_max_missed
-    shape, record = hull, {"missed_hull": round(base, 4), "voxels": int(hull.occ.sum())}
+    shape = hull
+    record: dict[str, Any] = {"missed_hull": round(base, 4), "voxels": int(hull.occ.sum())}
     if params.shape_revolution:
         missed, name, point, axis = best_revolution(check, photos)
         used = missed <= limit
-        record["revolution"] = {"axis": name, "point": point.tolist(), "direction": axis.tolist(),
-                                "missed": round(missed, 4), "used": used}
+        record["revolution"] = {
+            "axis": name,
+            "point": point.tolist(),
+            "direction": axis.tolist(),
+            "missed": round(missed, 4),
+            "used": used,
+        }
         if used:
             shape, check = revolved(hull, point, axis), revolved(check, point, axis)
     if params.shape_smooth:
@@ -97,8 +116,12 @@ def own_shape(hull: HullGrid, photos, params: OwnShapeParams) -> tuple[HullGrid,
             missed = missed_share(opening(check, frac * largest), photos)
             if missed <= limit:
                 shape = opening(shape, frac * largest)
-                record["smooth"] = {"radius": round(frac * largest, 4), "fraction": frac, "missed": round(missed, 4),
-                                    "used": True}
+                record["smooth"] = {
+                    "radius": round(frac * largest, 4),
+                    "fraction": frac,
+                    "missed": round(missed, 4),
+                    "used": True,
+                }
                 break
     changed = shape is not hull
     shape = shape.with_occupancy(shape.occ.clone())
@@ -112,12 +135,18 @@ def describe(record: dict) -> str:
     parts = []
     rev = record.get("revolution")
     if rev is not None:
-        parts.append(f"a solid of revolution about the {rev['axis']}" if rev["used"] else
-                     f"no solid of revolution (the best, about the {rev['axis']}, would leave out "
-                     f"{rev['missed']:.1%} of the photos' masks)")
+        parts.append(
+            f"a solid of revolution about the {rev['axis']}"
+            if rev["used"]
+            else f"no solid of revolution (the best, about the {rev['axis']}, would leave out "
+            f"{rev['missed']:.1%} of the photos' masks)"
+        )
     sm = record.get("smooth")
     if sm is not None:
-        parts.append(f"corners rounded at radius {sm['radius']:.3f}" if sm["used"] else
-                     "no rounding (every radius tried cuts the photos' masks)")
+        parts.append(
+            f"corners rounded at radius {sm['radius']:.3f}"
+            if sm["used"]
+            else "no rounding (every radius tried cuts the photos' masks)"
+        )
     kept = record["voxels_kept"] / max(record["voxels"], 1)
     return f"{', '.join(parts)}: {kept:.0%} of the hull kept, {record['restored']} voxels given back for the masks"

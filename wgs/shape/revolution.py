@@ -73,6 +73,8 @@ def shifted(point: torch.Tensor, axis: torch.Tensor, step: float, reach: int = 1
     helper[int(axis.abs().argmin())] = 1.0
     t1 = torch.nn.functional.normalize(torch.linalg.cross(axis, helper), dim=0)
     t2 = torch.linalg.cross(axis, t1)
-    ks = sorted(((i, j) for i in range(-reach, reach + 1) for j in range(-reach, reach + 1)),
-                key=lambda ij: abs(ij[0]) + abs(ij[1]))
+    ks = sorted(
+        ((i, j) for i in range(-reach, reach + 1) for j in range(-reach, reach + 1)),
+        key=lambda ij: abs(ij[0]) + abs(ij[1]),
+    )
     return [point + step * (i * t1 + j * t2) for i, j in ks]

@@ -10,8 +10,10 @@ import torch
 
 from .hull import HullGrid, silhouette, visual_hull_grid
 
-SILHOUETTE_DOC = ("silhouette: rendered opacity > 0.5 against the true mask > 0.5; iou = |P & T| / |P | T|, "
-                  "excess = |P - T| / |T| (area the model has too much), missed = |T - P| / |T|")
+SILHOUETTE_DOC = (
+    "silhouette: rendered opacity > 0.5 against the true mask > 0.5; iou = |P & T| / |P | T|, "
+    "excess = |P - T| / |T| (area the model has too much), missed = |T - P| / |T|"
+)
 
 
 def silhouette_scores(pred: torch.Tensor, true: torch.Tensor) -> dict[str, float]:
@@ -21,9 +23,11 @@ def silhouette_scores(pred: torch.Tensor, true: torch.Tensor) -> dict[str, float
     inter = int((pred & true).sum())
     union = int((pred | true).sum())
     area = int(true.sum())
-    return {"iou": inter / union if union else 1.0,
-            "excess": int((pred & ~true).sum()) / max(area, 1),
-            "missed": int((true & ~pred).sum()) / max(area, 1)}
+    return {
+        "iou": inter / union if union else 1.0,
+        "excess": int((pred & ~true).sum()) / max(area, 1),
+        "missed": int((true & ~pred).sum()) / max(area, 1),
+    }
 
 
 def mean_scores(per_view: dict[str, dict[str, float]]) -> dict[str, float] | None:
@@ -34,15 +38,20 @@ def mean_scores(per_view: dict[str, dict[str, float]]) -> dict[str, float] | Non
     return {k: statistics.fmean(s[k] for s in per_view.values()) for k in keys}
 
 
-def leave_one_out(frames, resolution: int = 96, extent: float = 1.0, tolerate: int = 0,
-                  carve: Callable[[HullGrid, list], HullGrid] | None = None) -> dict[str, dict[str, float]]:
+def leave_one_out(
+    frames,
+    resolution: int = 96,
+    extent: float = 1.0,
+    tolerate: int = 0,
+    carve: Callable[[HullGrid, list], HullGrid] | None = None,
+) -> dict[str, dict[str, float]]:
     """For each training frame (with a mask): the hull of the other frames' masks seen from its
     camera against its own mask. How fat a hull of N - 1 views is at a view it never saw estimates
     how fat the N-view hull is at test views, without test views. carve(hull, other frames) -> the
     hull a carving leaves, scored instead: the object's own check of that carving. {frame name: scores}."""
     out = {}
     for i, f in enumerate(frames):
-        others = frames[:i] + frames[i + 1:]
+        others = frames[:i] + frames[i + 1 :]
         grid = visual_hull_grid(others, resolution, extent, tolerate=tolerate)
         if carve is not None:
             grid = carve(grid, others)
@@ -63,4 +72,5 @@ def hull_cut(photos, resolution: int = 96, extent: float = 1.0) -> float:
     with fewer than 2 photos): how much the hull cuts of what a photo it was not built from shows."""
     if len(photos) < 2:
         return 0.0
-    return mean_scores(leave_one_out(photos, resolution, extent))["missed"]
+    means = mean_scores(leave_one_out(photos, resolution, extent))
+    return means["missed"] if means is not None else 0.0

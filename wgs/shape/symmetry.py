@@ -89,10 +89,20 @@ class RayVoxels:
         from .mirror_numba import mirror_ious
 
         g = self.grid
-        return torch.from_numpy(mirror_ious(
-            g.occ.reshape(-1).to(torch.uint8).numpy(), g.resolution, g.lo.double().numpy(), g.cell.double().numpy(),
-            g.centres().double().numpy(), normals.double().numpy(), offsets.double().numpy(),
-            self.voxels.numpy(), self.on_mask.numpy(), self.mask_total)).float()
+        return torch.from_numpy(
+            mirror_ious(
+                g.occ.reshape(-1).to(torch.uint8).numpy(),
+                g.resolution,
+                g.lo.double().numpy(),
+                g.cell.double().numpy(),
+                g.centres().double().numpy(),
+                normals.double().numpy(),
+                offsets.double().numpy(),
+                self.voxels.numpy(),
+                self.on_mask.numpy(),
+                self.mask_total,
+            )
+        ).float()
 
 
 def hemisphere_directions(n: int) -> torch.Tensor:
@@ -107,8 +117,10 @@ def hemisphere_directions(n: int) -> torch.Tensor:
 
 def leave_one_out_views(frames, resolution: int, stride: int) -> list[RayVoxels]:
     """For each frame, the hull of the other frames' masks and its rays at that frame's camera."""
-    return [RayVoxels(visual_hull_grid(frames[:i] + frames[i + 1:], resolution, tolerate=0), f, stride)
-            for i, f in enumerate(frames)]
+    return [
+        RayVoxels(visual_hull_grid(frames[:i] + frames[i + 1 :], resolution, tolerate=0), f, stride)
+        for i, f in enumerate(frames)
+    ]
 
 
 def mirrored_loo_iou(views: list[RayVoxels], normals: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
@@ -116,8 +128,9 @@ def mirrored_loo_iou(views: list[RayVoxels], normals: torch.Tensor, offsets: tor
     return torch.stack([rays.mirrored_iou(normals, offsets) for rays in views]).mean(0)
 
 
-def tilted(normal: torch.Tensor, offset: float, tilt_deg: float, offset_step: float, reach: int
-           ) -> tuple[torch.Tensor, torch.Tensor]:
+def tilted(
+    normal: torch.Tensor, offset: float, tilt_deg: float, offset_step: float, reach: int
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Planes around (normal, offset): tilts of k * tilt_deg about two axes across the normal and
     offsets of k * offset_step, k in -reach..reach: normals [(2 reach + 1)³, 3], offsets [...]."""
     axis = torch.zeros(3)
@@ -166,6 +179,11 @@ def mirror_check(frames, min_gain: float, max_missed: float, directions: int) ->
     plane, before, after = find_mirror(frames, directions)
     both = visual_hull_grid(frames + [mirror_frame(f, plane) for f in frames], REFINE[0], tolerate=0)
     missed = sum(silhouette_scores(silhouette(both, f)[0], f.mask > 0.5)["missed"] for f in frames) / len(frames)
-    return {"plane": plane.to_json(), "leave_one_out_iou": round(before, 4),
-            "leave_one_out_iou_mirrored": round(after, 4), "missed": round(missed, 4),
-            "used": after >= before + min_gain and missed <= max_missed, "seconds": round(time.perf_counter() - t0, 2)}
+    return {
+        "plane": plane.to_json(),
+        "leave_one_out_iou": round(before, 4),
+        "leave_one_out_iou_mirrored": round(after, 4),
+        "missed": round(missed, 4),
+        "used": after >= before + min_gain and missed <= max_missed,
+        "seconds": round(time.perf_counter() - t0, 2),
+    }

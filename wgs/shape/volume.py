@@ -17,6 +17,7 @@ import numpy as np
 import torch
 from scipy import ndimage
 
+from ..models.storage import config_of
 from .hull import HullGrid, grid_centres, pixel_lookup
 
 CHANNELS = 4
@@ -82,8 +83,9 @@ def sample_volume(values: torch.Tensor, box: VolumeBox, points: torch.Tensor) ->
     """Trilinear lookup of values [R, R, R] (indexed x, y, z) at points [N, 3] -> [N]; outside the cube 0."""
     uvw = (points - box.lo) / (box.hi - box.lo) * 2 - 1  # align_corners=False: cell centres
     g = uvw.flip(-1).reshape(1, -1, 1, 1, 3)  # grid_sample wants (x=W, y=H, z=D) for input [D, H, W]
-    out = torch.nn.functional.grid_sample(values[None, None].float(), g, mode="bilinear", padding_mode="zeros",
-                                          align_corners=False)
+    out = torch.nn.functional.grid_sample(
+        values[None, None].float(), g, mode="bilinear", padding_mode="zeros", align_corners=False
+    )
     return out.reshape(-1)
 
 
@@ -91,7 +93,7 @@ def sample_volume(values: torch.Tensor, box: VolumeBox, points: torch.Tensor) ->
 def occupied_probability(model: torch.nn.Module, frames, grid: HullGrid) -> torch.Tensor:
     """V's object probability [M] at the grid's occupied voxels (occ.nonzero order), from the
     training frames' masks over the cube around the grid's box."""
-    box = cube_around(grid, model.config.resolution)
+    box = cube_around(grid, config_of(model).resolution)
     dev = next(model.parameters()).device
     prob = torch.sigmoid(model(volume_inputs(frames, box)[None].to(dev)))[0, 0].cpu()
     return sample_volume(prob, box, grid.centres()[grid.occ.reshape(-1)])

@@ -15,8 +15,7 @@ from ..workspace import Workspace
 from .shared import background_for
 
 
-def run_render(ws: Workspace, stage: str, views: str, n_frames: int, device: torch.device,
-               video: bool = False) -> None:
+def run_render(ws: Workspace, stage: str, views: str, n_frames: int, device: torch.device, video: bool = False) -> None:
     if ws.manifest(stage) is None:
         raise InputError(f"stage '{stage}' has not run yet", ws.stage_dir(stage))
     scene = load_prepared(ws.output("scene", "prepared"))

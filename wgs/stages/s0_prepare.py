@@ -9,12 +9,23 @@ from pathlib import Path
 from ..config import PrepareConfig
 from ..errors import InputError
 from ..io import atomic_write_bytes, atomic_write_json, read_json
+from ..io.images import write_png
 from ..progress import log
 from ..scene.dataset import load_prepared
 from ..scene.formats import detect_format
-from ..scene.prepare import downscale_for, load_scene_for_prepare, prepare, scene_inputs_digest
+from ..scene.prepare import (
+    MASK_MIN_FRACTION,
+    LoadedViews,
+    downscale_for,
+    load_scene_for_prepare,
+    load_views,
+    scene_inputs_digest,
+    write_prepared,
+)
 from ..scene.sfm import find_photos, pose_photos
 from ..scene.types import RawScene
+from ..segment.accept import judged_automatic_masks
+from ..segment.automask import mask_sheet
 from ..shape.symmetry import mirror_check
 from ..threads import thread_count
 from ..workspace import StageRun, Workspace
@@ -23,6 +34,11 @@ from . import StageEnv
 SFM_DIR = "sfm"
 SFM_INPUTS = "inputs.sha256"
 SFM_SUMMARY = "summary.json"
+MASK_MODES = ("auto", "none")  # PrepareConfig.masks: these, or a folder of masks
+
+
+def mask_folder(cfg: PrepareConfig) -> Path | None:
+    return None if cfg.masks in MASK_MODES else Path(cfg.masks)
 
 
 def _photos_digest(image_dir: Path, names: list[str], mask_dir: Path | None, cfg: PrepareConfig) -> str:
@@ -39,7 +55,10 @@ def posed_photos(ws: Workspace, scene_dir: Path, cfg: PrepareConfig) -> Path:
     """The COLMAP model of the photos in `scene_dir`, made once by structure-from-motion and kept
     in `WS/sfm/` until the photos or the settings change."""
     out = ws.root / SFM_DIR
-    image_dir, names, mask_dir = find_photos(scene_dir)
+    found = find_photos(scene_dir)
+    if found is None:
+        raise InputError("no photos found", scene_dir)
+    image_dir, names, mask_dir = found
     key = _photos_digest(image_dir, names, mask_dir, cfg)
     if (out / SFM_INPUTS).is_file() and (out / SFM_INPUTS).read_text().strip() == key:
         log("sfm: photos already posed, reused")
@@ -47,8 +66,15 @@ def posed_photos(ws: Workspace, scene_dir: Path, cfg: PrepareConfig) -> Path:
     log(f"sfm: posing {len(names)} photos{' inside their masks' if mask_dir else ''} (pycolmap, CPU)")
     with ws.lock():
         res = pose_photos(image_dir, names, mask_dir, out, cfg.matcher, cfg.sfm_max_image_size, thread_count())
-        atomic_write_json(out / SFM_SUMMARY, {"registered": res.registered, "photos": res.total,
-                                              "seconds": round(res.seconds, 2), "matcher": res.matcher})
+        atomic_write_json(
+            out / SFM_SUMMARY,
+            {
+                "registered": res.registered,
+                "photos": res.total,
+                "seconds": round(res.seconds, 2),
+                "matcher": res.matcher,
+            },
+        )
         atomic_write_bytes(out / SFM_INPUTS, (key + "\n").encode())
     return out
 
@@ -58,15 +84,21 @@ def run_prepare(ws: Workspace, cfg: PrepareConfig, env: StageEnv, force: bool = 
     scene_dir = env.scene_dir
     if scene_dir is None:
         raise InputError("prepare needs a scene folder")
-    sfm_model = posed_photos(ws, scene_dir, cfg) if scene_dir.is_dir() and detect_format(scene_dir) == "photos" \
-        else None
-    scene = load_scene_for_prepare(scene_dir, cfg, sfm_model)
+    sfm_model = (
+        posed_photos(ws, scene_dir, cfg) if scene_dir.is_dir() and detect_format(scene_dir) == "photos" else None
+    )
+    scene = load_scene_for_prepare(scene_dir, cfg.views, cfg.test_every, mask_folder(cfg), sfm_model)
     if sfm_model is not None:
         s = read_json(sfm_model / SFM_SUMMARY)
-        scene.notes.append(f"poses by structure-from-motion: {s['registered']} of {s['photos']} photos registered "
-                           f"({s['matcher']} matching, {s['seconds']:.0f} s); the model is in {sfm_model}")
-    extra = {"source": str(scene_dir.resolve()), "inputs": scene_inputs_digest(scene),
-             "working_size": env.working_size.key if env.working_size and not (cfg.downscale or cfg.max_size) else None}
+        scene.notes.append(
+            f"poses by structure-from-motion: {s['registered']} of {s['photos']} photos registered "
+            f"({s['matcher']} matching, {s['seconds']:.0f} s); the model is in {sfm_model}"
+        )
+    extra = {
+        "source": str(scene_dir.resolve()),
+        "inputs": scene_inputs_digest(scene),
+        "working_size": env.working_size.key if env.working_size and not (cfg.downscale or cfg.max_size) else None,
+    }
 
     def body(run: StageRun) -> str:
         k, why = working_downscale(scene, cfg, env)
@@ -75,7 +107,7 @@ def run_prepare(ws: Workspace, cfg: PrepareConfig, env: StageEnv, force: bool = 
             run.record["working_size"] = why
         return import_scene(run, ws, scene_dir, scene, dataclasses.replace(cfg, downscale=k), force)
 
-    return ws.run_stage("scene", cfg, extra, force, body)
+    return ws.run_staged("scene", cfg, extra, force, body)
 
 
 def working_downscale(scene: RawScene, cfg: PrepareConfig, env: StageEnv) -> tuple[int, str | None]:
@@ -86,11 +118,33 @@ def working_downscale(scene: RawScene, cfg: PrepareConfig, env: StageEnv) -> tup
     v = scene.views[scene.train[0]]
     if cfg.max_size:
         k = downscale_for(v.width, v.height, cfg.max_size)
-        return k, (f"working size: {v.width // k}x{v.height // k} (the photos' {v.width}x{v.height} / {k}: "
-                   f"--max-size {cfg.max_size})")
+        return k, (
+            f"working size: {v.width // k}x{v.height // k} (the photos' {v.width}x{v.height} / {k}: "
+            f"--max-size {cfg.max_size})"
+        )
     if env.working_size is None:
         return 1, None
     return env.working_size(v.width, v.height, len(scene.train), len(scene.test))
+
+
+def scene_masks(views: LoadedViews, cfg: PrepareConfig, run: StageRun) -> tuple[list, dict, list]:
+    """The masks to use, their record, and the masks the crop check judges (those used, or the
+    automatic ones proposed). Automatic masks that are not used are written for correction
+    (`masks_proposed`); all are outlined on the training photos (`masks_sheet`)."""
+    given = any(m is not None for m in views.masks)
+    source = "folder" if mask_folder(cfg) is not None else "given" if given else cfg.masks
+    if source != "auto":
+        return views.masks, {"source": source}, views.masks
+    names, n = views.names, views.n_train
+    judged = judged_automatic_masks(
+        views.images, [views.cameras[name] for name in names], names, n, cfg, thread_count(), MASK_MIN_FRACTION
+    )
+    if judged.used is None:  # not used, but there to be corrected and given back (--masks DIR)
+        for name, mask in zip(names, judged.proposed, strict=True):
+            write_png(run.output("masks_proposed", name), mask)
+    write_png(run.output("masks_sheet"), mask_sheet(views.images[:n], judged.proposed[:n]))
+    used = judged.used if judged.used is not None else views.masks
+    return used, judged.record, judged.proposed
 
 
 def mask_line(masks: dict, sheet: Path, proposed: Path) -> str:
@@ -98,20 +152,33 @@ def mask_line(masks: dict, sheet: Path, proposed: Path) -> str:
     contact sheet and, when they were not used, the masks themselves are."""
     if masks["source"] == "auto":
         m = masks["model"]
-        return (f"masks: automatic ({m['package'] or m['file']}{' ' + m['version'] if m['version'] else ''}, "
-                f"agreement between views cut {100 * masks['cut_by_agreement']['mean']:.1f} % of the network's "
-                f"object area, {masks['seconds_per_photo']:.1f} s per photo"
-                + ("; the other views support nothing of the network's mask of "
-                   f"{', '.join(masks['without_agreement'])}: what they alone call object there"
-                   if masks["without_agreement"] else "")
-                + (f"; {', '.join(masks['not_voting'])} did not vote (the others hold too little of their mask)"
-                   if masks.get("not_voting") else "")
-                + f"); check them in {sheet}, correct them with --masks DIR")
+        return (
+            f"masks: automatic ({m['package'] or m['file']}{' ' + m['version'] if m['version'] else ''}, "
+            f"agreement between views cut {100 * masks['cut_by_agreement']['mean']:.1f} % of the network's "
+            f"object area, {masks['seconds_per_photo']:.1f} s per photo"
+            + (
+                "; the other views support nothing of the network's mask of "
+                f"{', '.join(masks['without_agreement'])}: what they alone call object there"
+                if masks["without_agreement"]
+                else ""
+            )
+            + (
+                f"; {', '.join(masks['not_voting'])} did not vote (the others hold too little of their mask)"
+                if masks.get("not_voting")
+                else ""
+            )
+            + f"); check them in {sheet}, correct them with --masks DIR"
+        )
     if "auto_failed" in masks:
-        return (f"masks: none ({masks['auto_failed']}; --masks DIR takes yours; the automatic ones are in "
-                f"{proposed} to correct, outlined in {sheet})")
-    return {"given": "masks: the scene's own", "folder": "masks: from the --masks folder",
-            "none": "masks: none (--masks none)"}[masks["source"]]
+        return (
+            f"masks: none ({masks['auto_failed']}; --masks DIR takes yours; the automatic ones are in "
+            f"{proposed} to correct, outlined in {sheet})"
+        )
+    return {
+        "given": "masks: the scene's own",
+        "folder": "masks: from the --masks folder",
+        "none": "masks: none (--masks none)",
+    }[masks["source"]]
 
 
 def find_mirror_views(scene_dir: Path, cfg: PrepareConfig) -> dict | None:
@@ -124,42 +191,60 @@ def find_mirror_views(scene_dir: Path, cfg: PrepareConfig) -> dict | None:
     except InputError:
         log("mirror: the training masks share no region -> no mirror views")
         return None
-    ious = (f"leave-one-out silhouette IoU {record['leave_one_out_iou']:.3f} -> "
-            f"{record['leave_one_out_iou_mirrored']:.3f}")
+    ious = (
+        f"leave-one-out silhouette IoU {record['leave_one_out_iou']:.3f} -> {record['leave_one_out_iou_mirrored']:.3f}"
+    )
     if record["used"]:
         taught = "their outlines" if cfg.mirror == "outline" else "their outlines and colours"
-        log(f"mirror: the {len(frames)} training photos' mirror images join them as training views, teaching "
-            f"{taught} ({ious})")
+        log(
+            f"mirror: the {len(frames)} training photos' mirror images join them as training views, teaching "
+            f"{taught} ({ious})"
+        )
     elif record["missed"] > cfg.mirror_max_missed:
-        log(f"mirror: the best mirror plane ({ious}) would cut {100 * record['missed']:.1f} % of the photos' masks "
-            "-> no mirror views")
+        log(
+            f"mirror: the best mirror plane ({ious}) would cut {100 * record['missed']:.1f} % of the photos' masks "
+            "-> no mirror views"
+        )
     else:
         log(f"mirror: no mirror plane raises the {ious} by {cfg.mirror_min_gain} -> no mirror views")
     return record
 
 
-def import_scene(run: StageRun, ws: Workspace, scene_dir: Path, scene: RawScene, cfg: PrepareConfig, force: bool
-                 ) -> str:
+def import_scene(
+    run: StageRun, ws: Workspace, scene_dir: Path, scene: RawScene, cfg: PrepareConfig, force: bool
+) -> str:
     held = ((ws.manifest("scene") or {}).get("summary") or {}).get("source")
     if held is not None and Path(held) != scene_dir.resolve() and not force:
-        raise InputError(f"this workspace holds another scene ({held}): use a new -w folder, or add --force "
-                         "to replace it (every stage is then recomputed)", ws.root)
+        raise InputError(
+            f"this workspace holds another scene ({held}): use a new -w folder, or add --force "
+            "to replace it (every stage is then recomputed)",
+            ws.root,
+        )
     for note in scene.notes:
         log(f"  note: {note}")
     log(f"prepare: {scene.format} scene, {len(scene.train)} training + {len(scene.test)} test views")
-    info = prepare(scene, cfg, run.dir)
+    views = load_views(scene, cfg.downscale or 1, cfg.max_pixels, run.dir)
+    masks, mask_info, judged = scene_masks(views, cfg, run)
+    info = write_prepared(scene, views, masks, mask_info, judged, run.dir)
     log(mask_line(info["masks"], ws.output("scene", "masks_sheet"), ws.output("scene", "masks_proposed")))
     cropped, n = info["masks"]["training_cropped"], len(info["train_names"])
     if cropped:
-        log(f"masks: the object reaches the frame's edge in {len(cropped)} of the {n} training photos "
+        log(
+            f"masks: the object reaches the frame's edge in {len(cropped)} of the {n} training photos "
             f"({', '.join(cropped)}): photos that hold the whole object bound more of it (--views N takes the "
-            "ones sparse_N.txt names)")
+            "ones sparse_N.txt names)"
+        )
     if cfg.mirror != "none" and info["has_masks"]:
         info["mirror"] = find_mirror_views(run.dir, cfg)
         atomic_write_json(run.dir / "scene.json", info)
     run.record["summary"] = {
-        "source": info["source"], "format": info["format"], "num_train": len(info["train_names"]),
-        "num_test": len(info["test_names"]), "resolution": info["resolution"], "has_masks": info["has_masks"],
-        "masks": info["masks"], "mirror": info.get("mirror"),
+        "source": info["source"],
+        "format": info["format"],
+        "num_train": len(info["train_names"]),
+        "num_test": len(info["test_names"]),
+        "resolution": info["resolution"],
+        "has_masks": info["has_masks"],
+        "masks": info["masks"],
+        "mirror": info.get("mirror"),
     }
     return f"prepare: wrote {ws.stage_dir('scene')}"

@@ -29,7 +29,7 @@ def write_coarse_outputs(run: StageRun, scene: PreparedScene, splats: Splats, de
     bg = background_for(scene)
     per_view = {}
     for f in scene.colour_views:
-        ref = composite(f.image, f.mask, bg)
+        ref = composite(f.pixels, f.mask, bg)
         rgb, _ = render_frame(splats, f, device, bg)
         write_png(run.path("renders", f.name), rgb.numpy())
         stem = f.name.rsplit(".", 1)[0]
@@ -40,19 +40,31 @@ def write_coarse_outputs(run: StageRun, scene: PreparedScene, splats: Splats, de
 
 
 def run_coarse(ws: Workspace, cfg: CoarseConfig, env: StageEnv, force: bool = False) -> bool:
-    return ws.run_stage("coarse", cfg, {"seed": env.seed}, force,
-                        lambda run: train_coarse(run, ws, cfg, env.device, env.seed))
+    return ws.run_staged(
+        "coarse", cfg, {"seed": env.seed}, force, lambda run: train_coarse(run, ws, cfg, env.device, env.seed)
+    )
 
 
-def train_model(ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: int, desc: str,
-                checkpoint: Checkpointer, probe: bool) -> tuple[TrainResult, list[str]]:
+def train_model(
+    ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: int, desc: str, checkpoint: Checkpointer, probe: bool
+) -> tuple[TrainResult, list[str]]:
     """One coarse model from `seed` (with the test probe: G_c); its result and the probe's views.
     Module level so that a spawned process can run it."""
     scene = load_prepared(ws.output("scene", "prepared"))
     torch.manual_seed(seed)
     test, names = test_probe(ws, scene, cfg, background_for(scene), device) if probe else (None, [])
-    res = train_gaussians(initial_splats(scene, cfg, seed), scene.train, cfg, device, extent=1.0, desc=desc,
-                          seed=seed, has_masks=scene.has_masks, checkpoint=checkpoint, probe=test)
+    res = train_gaussians(
+        initial_splats(scene, cfg, seed),
+        scene.train,
+        cfg,
+        device,
+        extent=1.0,
+        desc=desc,
+        seed=seed,
+        has_masks=scene.has_masks,
+        checkpoint=checkpoint,
+        probe=test,
+    )
     return res, names
 
 
@@ -73,10 +85,22 @@ def side_by_side(cfg: CoarseConfig, device: torch.device, pixels: int) -> int:
 def train_coarse(run: StageRun, ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: int) -> str:
     scene = load_prepared(ws.output("scene", "prepared"))
     workers = side_by_side(cfg, device, scene.train[0].width * scene.train[0].height)
-    log(f"coarse: {cfg.ensemble} model(s) from seeds {seed}..{seed + cfg.ensemble - 1}, {len(scene.train)} views, "
-        f"{cfg.iterations} iterations on {device}" + (f", {workers} side by side" if workers > 1 else ""))
-    jobs = [(ws, cfg, device, seed + i, "coarse" if i == 0 else f"coarse member {i + 1}/{cfg.ensemble}",
-             run.checkpointer("gc" if i == 0 else f"gc{i}"), i == 0) for i in range(cfg.ensemble)]
+    log(
+        f"coarse: {cfg.ensemble} model(s) from seeds {seed}..{seed + cfg.ensemble - 1}, {len(scene.train)} views, "
+        f"{cfg.iterations} iterations on {device}" + (f", {workers} side by side" if workers > 1 else "")
+    )
+    jobs = [
+        (
+            ws,
+            cfg,
+            device,
+            seed + i,
+            "coarse" if i == 0 else f"coarse member {i + 1}/{cfg.ensemble}",
+            run.checkpointer("gc" if i == 0 else f"gc{i}"),
+            i == 0,
+        )
+        for i in range(cfg.ensemble)
+    ]
     results: dict[int, TrainResult] = {}
     probe_names: list[str] = []
     with progress_bar("coarse models", cfg.ensemble) if workers > 1 else contextlib.nullcontext() as bar:
@@ -98,10 +122,22 @@ def train_coarse(run: StageRun, ws: Workspace, cfg: CoarseConfig, device: torch.
     mean_psnr = sum(per_view.values()) / len(per_view)
     member_s = [round(results[i].seconds, 2) for i in range(1, cfg.ensemble)]
     # train_seconds: G_c alone (trained beside the members when `side_by_side` > 1)
-    run.record.update({"num_gaussians": n_ply, "iterations": res.iterations,
-                       "train_seconds": round(res.seconds, 2), "final_loss": res.losses[-1],
-                       "train_psnr": round(mean_psnr, 3), "seed": seed, "device": str(device),
-                       "ensemble": cfg.ensemble, "member_seconds": member_s, "side_by_side": workers})
-    return (f"coarse: {n_ply} Gaussians, training-view PSNR {mean_psnr:.2f} dB, {res.seconds:.1f} s"
-            + (f"; {cfg.ensemble - 1} more ensemble members in {sum(member_s):.1f} s" if member_s else "")
-            + (f" ({workers} side by side)" if workers > 1 else ""))
+    run.record.update(
+        {
+            "num_gaussians": n_ply,
+            "iterations": res.iterations,
+            "train_seconds": round(res.seconds, 2),
+            "final_loss": res.losses[-1],
+            "train_psnr": round(mean_psnr, 3),
+            "seed": seed,
+            "device": str(device),
+            "ensemble": cfg.ensemble,
+            "member_seconds": member_s,
+            "side_by_side": workers,
+        }
+    )
+    return (
+        f"coarse: {n_ply} Gaussians, training-view PSNR {mean_psnr:.2f} dB, {res.seconds:.1f} s"
+        + (f"; {cfg.ensemble - 1} more ensemble members in {sum(member_s):.1f} s" if member_s else "")
+        + (f" ({workers} side by side)" if workers > 1 else "")
+    )

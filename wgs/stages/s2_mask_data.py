@@ -34,7 +34,7 @@ class PairWriter:
     def __init__(self, run: StageRun, scene: PreparedScene, device: torch.device, strategy: str):
         self.run, self.scene, self.device, self.strategy = run, scene, device, strategy
         self.bg = background_for(scene)
-        self.refs = [composite(f.image, f.mask, self.bg) for f in scene.train]
+        self.refs = [composite(f.pixels, f.mask, self.bg) for f in scene.train]
         self.ref_bands = [subbands_hwc(r) for r in self.refs]
         # (model, iteration, view) -> entry, in write order; persisted so a resumed run keeps earlier pairs
         self.entries_file = run.path("pairs", "entries.json")
@@ -54,22 +54,39 @@ class PairWriter:
         # hidden area at LL resolution: the fraction of each 2x2 block that was hidden
         hid_ll = subbands_hwc(hid[..., None].repeat(1, 1, 3))["LL"][..., :1] / 2.0
         ll_file = f"pairs/ll/{stem}.exr"
-        write_subbands(self.run.path(ll_file), {"LL": self.ref_bands[view]["LL"],
-                                                "cLL": subbands_hwc(render)["LL"], "M": hid_ll})
+        write_subbands(
+            self.run.path(ll_file), {"LL": self.ref_bands[view]["LL"], "cLL": subbands_hwc(render)["LL"], "M": hid_ll}
+        )
         rgb_file = f"pairs/rgb/{stem}.exr"
-        write_subbands(self.run.path(rgb_file), {"RGB": self.refs[view].numpy(), "cRGB": render.numpy(),
-                                                 "M": hid[..., None].numpy()})
+        write_subbands(
+            self.run.path(rgb_file),
+            {"RGB": self.refs[view].numpy(), "cRGB": render.numpy(), "M": hid[..., None].numpy()},
+        )
         key = f"{model}/{it}/{view}"
-        self.entries[key] = {"key": key, "view": f.name, "iteration": it, "model": model, "ll": ll_file,
-                             "rgb": rgb_file}
+        self.entries[key] = {
+            "key": key,
+            "view": f.name,
+            "iteration": it,
+            "model": model,
+            "ll": ll_file,
+            "rgb": rgb_file,
+        }
         atomic_write_json(self.entries_file, list(self.entries.values()))
 
 
-def run_orm(cfg: MaskDataConfig, scene: PreparedScene, device: torch.device, seed: int, writer: PairWriter
-            ) -> dict[str, Any]:
+def run_orm(
+    cfg: MaskDataConfig, scene: PreparedScene, device: torch.device, seed: int, writer: PairWriter
+) -> dict[str, Any]:
     objects = torch.stack([f.mask if f.mask is not None else torch.ones(f.height, f.width) for f in scene.train])
-    regions = make_region_masks(objects, cfg.n_regions, cfg.coverage, cfg.drift, cfg.drift_period,
-                                offline=cfg.strategy == "offline-rm", seed=seed)
+    regions = make_region_masks(
+        objects,
+        cfg.n_regions,
+        cfg.coverage,
+        cfg.drift,
+        cfg.drift_period,
+        offline=cfg.strategy == "offline-rm",
+        seed=seed,
+    )
 
     def weights(i: int, it: int) -> torch.Tensor:
         return (1.0 - regions.hidden(i, it)).to(device)
@@ -80,14 +97,25 @@ def run_orm(cfg: MaskDataConfig, scene: PreparedScene, device: torch.device, see
                 if f.shows_colour:
                     writer.write(params, v, it, regions.hidden(v, it), "gd")
 
-    res = train_gaussians(initial_splats(scene, cfg, seed), scene.train, cfg, device, extent=1.0,
-                          desc=f"mask-data {cfg.strategy}", seed=seed, pixel_weights=weights,
-                          has_masks=scene.has_masks, on_step=snapshot, checkpoint=writer.run.checkpointer("gd"))
+    res = train_gaussians(
+        initial_splats(scene, cfg, seed),
+        scene.train,
+        cfg,
+        device,
+        extent=1.0,
+        desc=f"mask-data {cfg.strategy}",
+        seed=seed,
+        pixel_weights=weights,
+        has_masks=scene.has_masks,
+        on_step=snapshot,
+        checkpoint=writer.run.checkpointer("gd"),
+    )
     return {"models": 1, "iterations": res.iterations}
 
 
-def run_loo(cfg: MaskDataConfig, scene: PreparedScene, device: torch.device, seed: int, writer: PairWriter
-            ) -> dict[str, Any]:
+def run_loo(
+    cfg: MaskDataConfig, scene: PreparedScene, device: torch.device, seed: int, writer: PairWriter
+) -> dict[str, Any]:
     left_outs = [i for i, f in enumerate(scene.train) if f.shows_colour]  # outline-only views make no pairs
     for k, left_out in enumerate(left_outs):
         keep = [f for i, f in enumerate(scene.train) if i != left_out]
@@ -97,9 +125,18 @@ def run_loo(cfg: MaskDataConfig, scene: PreparedScene, device: torch.device, see
             if it >= cfg.warmup and it % cfg.pair_every == 0:
                 writer.write(params, v, it, None, f"loo{v}")
 
-        train_gaussians(initial_splats(sub, cfg, seed), keep, cfg, device, extent=1.0,
-                        desc=f"mask-data loo {k + 1}/{len(left_outs)}", seed=seed, has_masks=scene.has_masks,
-                        on_step=snapshot, checkpoint=writer.run.checkpointer(f"loo{left_out}"))
+        train_gaussians(
+            initial_splats(sub, cfg, seed),
+            keep,
+            cfg,
+            device,
+            extent=1.0,
+            desc=f"mask-data loo {k + 1}/{len(left_outs)}",
+            seed=seed,
+            has_masks=scene.has_masks,
+            on_step=snapshot,
+            checkpoint=writer.run.checkpointer(f"loo{left_out}"),
+        )
     return {"models": len(left_outs), "iterations": cfg.iterations * len(left_outs)}
 
 
@@ -113,8 +150,9 @@ def hf_views(ws: Workspace, scene: PreparedScene) -> list[str]:
 
 
 def run_mask_data(ws: Workspace, cfg: MaskDataConfig, env: StageEnv, force: bool = False) -> bool:
-    return ws.run_stage("mask_data", cfg, {"seed": env.seed}, force,
-                        lambda run: make_pairs(run, ws, cfg, env.device, env.seed))
+    return ws.run_staged(
+        "mask_data", cfg, {"seed": env.seed}, force, lambda run: make_pairs(run, ws, cfg, env.device, env.seed)
+    )
 
 
 def make_pairs(run: StageRun, ws: Workspace, cfg: MaskDataConfig, device: torch.device, seed: int) -> str:
@@ -124,8 +162,10 @@ def make_pairs(run: StageRun, ws: Workspace, cfg: MaskDataConfig, device: torch.
     t0 = time.perf_counter()
     stats = (run_loo if cfg.strategy == "loo" else run_orm)(cfg, scene, device, seed, writer)
     seconds = time.perf_counter() - t0
-    atomic_write_json(run.output("index"), {"strategy": cfg.strategy, "pairs": writer.pairs,
-                                        "hf_views": hf_views(ws, scene)})
-    run.record.update({"strategy": cfg.strategy, "num_pairs": len(writer.pairs),
-                       "strategy_seconds": round(seconds, 2), **stats})
+    atomic_write_json(
+        run.output("index"), {"strategy": cfg.strategy, "pairs": writer.pairs, "hf_views": hf_views(ws, scene)}
+    )
+    run.record.update(
+        {"strategy": cfg.strategy, "num_pairs": len(writer.pairs), "strategy_seconds": round(seconds, 2), **stats}
+    )
     return f"mask-data: {cfg.strategy}, {len(writer.pairs)} pairs from {stats['models']} model(s) in {seconds:.1f} s"

@@ -25,7 +25,6 @@ from ..io.images import write_png
 from ..masking import grow
 from ..models.repair import load_repairer
 from ..models.storage import load_model
-from ..prior import WEIGHTS_S, WEIGHTS_V
 from ..progress import log
 from ..scene.dataset import load_prepared
 from ..scene.orbit import novel_views, sphere_views
@@ -35,6 +34,7 @@ from ..shape.hull import HullGrid, save_grid, silhouette, visual_hull_grid
 from ..shape.own_shape import describe as describe_own_shape
 from ..shape.own_shape import own_shape
 from ..shape.scores import HULL_CUT_LIMIT, hull_cut
+from ..weights import WEIGHTS_S, WEIGHTS_V
 from ..workspace import StageRun, Workspace
 from . import StageEnv
 from .shared import background_for, coarse_members, ensemble_repair
@@ -56,8 +56,10 @@ class ShapeModels:
 
     def predict(self, camera, render: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
         """S's [H, W] object probability from G_c's render [H, W, 3] and opacity [H, W, 1] at `camera`."""
-        return predict_object(self.silhouette_model, silhouette_inputs(render, alpha[..., 0],
-                                                                      *hull_channels(self.grid, camera)))
+        assert self.silhouette_model is not None
+        return predict_object(
+            self.silhouette_model, silhouette_inputs(render, alpha[..., 0], *hull_channels(self.grid, camera))
+        )
 
 
 def model_folder(setting: str, builtin: Path) -> Path | None:
@@ -79,8 +81,9 @@ def carving_fingerprint(cfg: RepairConfig) -> dict[str, str | None]:
     out = {}
     for name, folder in carving_folders(cfg).items():
         weights = folder / "model.safetensors" if folder is not None else None
-        out[name] = (hashlib.sha256(weights.read_bytes()).hexdigest()[:16]
-                     if weights is not None and weights.is_file() else None)
+        out[name] = (
+            hashlib.sha256(weights.read_bytes()).hexdigest()[:16] if weights is not None and weights.is_file() else None
+        )
     return out
 
 
@@ -104,8 +107,10 @@ def shape_models(scene, cfg: RepairConfig, device: torch.device) -> ShapeModels 
         log("repair: the training masks share no region (every mask agreeing) -> no carving")
         return None
     if cut > HULL_CUT_LIMIT:
-        log(f"repair: the hull of the other photos leaves out {cut:.1%} of each photo's mask (a mask misses part of "
-            f"the object, or the photos crop it) -> no carving, no silhouettes at the pseudo views")
+        log(
+            f"repair: the hull of the other photos leaves out {cut:.1%} of each photo's mask (a mask misses part of "
+            f"the object, or the photos crop it) -> no carving, no silhouettes at the pseudo views"
+        )
         return None
     models = {k: load_model(f, device)[0] if f is not None else None for k, f in folders.items()}
     return ShapeModels(grid, models["S"], models["V"])
@@ -123,11 +128,15 @@ def carve_hull(shape: ShapeModels, scene, cfg: RepairConfig, run: StageRun) -> H
         hull, record = carve_with_volume(shape.volume_model, frames, hull, cfg, cfg.hull_resolution)
         run.record["volume_carving"] = record
         if record["used"]:
-            log(f"repair: V carved {record['carved'] - record['restored']} of the hull's {record['voxels']} voxels "
-                f"({record['restored']} kept for the real masks)")
+            log(
+                f"repair: V carved {record['carved'] - record['restored']} of the hull's {record['voxels']} voxels "
+                f"({record['restored']} kept for the real masks)"
+            )
         else:
-            log(f"repair: V would lower this object's leave-one-out silhouette IoU ({record['leave_one_out_iou']:.3f}"
-                f" -> {record['leave_one_out_iou_carved']:.3f}) -> V does not carve")
+            log(
+                f"repair: V would lower this object's leave-one-out silhouette IoU ({record['leave_one_out_iou']:.3f}"
+                f" -> {record['leave_one_out_iou_carved']:.3f}) -> V does not carve"
+            )
     return hull
 
 
@@ -137,8 +146,13 @@ def grown_silhouette(grid: HullGrid, camera, px: int) -> torch.Tensor:
 
 
 def run_repair(ws: Workspace, cfg: RepairConfig, env: StageEnv, force: bool = False) -> bool:
-    return ws.run_stage("repair", cfg, {"seed": env.seed, "carving_models": carving_fingerprint(cfg)}, force,
-                        lambda run: repair_views(run, ws, cfg, env.device, env.seed))
+    return ws.run_staged(
+        "repair",
+        cfg,
+        {"seed": env.seed, "carving_models": carving_fingerprint(cfg)},
+        force,
+        lambda run: repair_views(run, ws, cfg, env.device, env.seed),
+    )
 
 
 def repair_views(run: StageRun, ws: Workspace, cfg: RepairConfig, device: torch.device, seed: int) -> str:
@@ -164,7 +178,8 @@ def repair_views(run: StageRun, ws: Workspace, cfg: RepairConfig, device: torch.
         render, fixed, bands_in, bands_out = ensemble_repair(members, frame, bg, repairer, device, first_render=first)
         stem = frame.name.rsplit(".", 1)[0]
         extra = {}
-        if shape is not None:  # where the object may be: inside V's hull, but for what S is sure is background
+        if shape is not None and hull is not None:  # where the object may be: inside V's hull, but for what
+            # S is sure is background
             may_be = grown_silhouette(hull, frame, cfg.dilate_px)
             if use_s:
                 probs.append(shape.predict(frame, first, alpha))
@@ -176,20 +191,37 @@ def repair_views(run: StageRun, ws: Workspace, cfg: RepairConfig, device: torch.
         write_subbands(run.output("pseudo", f"{stem}.exr"), {"RGB": fixed.numpy()}, half=False)
         write_png(run.output("pseudo", frame.name), fixed.numpy())
         rows.append((render, fixed))
-        listing.append({"name": frame.name, **frame.to_json(), "distance": dist,
-                        "weight": min(1.0, 2.0 * dist / d_max) if d_max > 0 else 1.0, **extra})
-    if use_s:  # S also at views over the whole sphere: the band leaves the poles uncarved
+        listing.append(
+            {
+                "name": frame.name,
+                **frame.to_json(),
+                "distance": dist,
+                "weight": min(1.0, 2.0 * dist / d_max) if d_max > 0 else 1.0,
+                **extra,
+            }
+        )
+    if use_s and shape is not None and hull is not None:  # S also at views over the whole sphere: the band
+        # leaves the poles uncarved
         around = [f for f, _ in sphere_views(scene.train, cfg.carve_views, 180.0, 180.0)]
         probs += [shape.predict(f, *render_frame(members[0], f, device, bg)) for f in around]
         hull, counts = carve(hull, [f for f, _ in views] + around, probs, scene.train, cfg)
         run.record["carving"] = counts
-        log(f"repair: S carved {counts['carved'] - counts['restored']} of the hull's {counts['voxels']} voxels "
-            f"({counts['restored']} kept for the real masks)")
-    if shape is not None:
+        log(
+            f"repair: S carved {counts['carved'] - counts['restored']} of the hull's {counts['voxels']} voxels "
+            f"({counts['restored']} kept for the real masks)"
+        )
+    if hull is not None:
         save_grid(run.output("carved_hull"), hull)
     write_png(run.output("contact_sheet"), contact_sheet(rows))
     atomic_write_json(run.output("views"), {"domain": domain, "used_u": U is not None, "views": listing})
     seconds = time.perf_counter() - t0
-    run.record.update({"num_views": len(listing), "domain": domain, "used_u": U is not None,
-                       "ensemble": len(members), "seconds": round(seconds, 2)})
+    run.record.update(
+        {
+            "num_views": len(listing),
+            "domain": domain,
+            "used_u": U is not None,
+            "ensemble": len(members),
+            "seconds": round(seconds, 2),
+        }
+    )
     return f"repair: {len(listing)} pseudo references in {seconds:.1f} s"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 
 import torch
 
@@ -46,19 +47,20 @@ def load_pseudo_views(ws: Workspace) -> tuple[list[Frame], list[float]]:
         img = read_subbands(ws.output("repair", "pseudo", f"{v['name'].rsplit('.', 1)[0]}.exr"))["RGB"]
         cam = Camera.from_json(v)
         mask = torch.from_numpy(read_image(d / v["silhouette"])[..., 0].copy()) if "silhouette" in v else None
-        frames.append(Frame(cam.K, cam.viewmat, cam.width, cam.height, name=v["name"], image=torch.from_numpy(img),
-                            mask=mask))
+        frames.append(
+            Frame(cam.K, cam.viewmat, cam.width, cam.height, name=v["name"], image=torch.from_numpy(img), mask=mask)
+        )
         weights.append(float(v["weight"]))
     return frames, weights
 
 
-def repaired_again(ws: Workspace, splats, frames: list[Frame], background: torch.Tensor, device: torch.device,
-                   seed: int) -> list[Frame]:
+def repaired_again(
+    ws: Workspace, splats, frames: list[Frame], background: torch.Tensor, device: torch.device, seed: int
+) -> list[Frame]:
     """The pseudo frames with images rendered from `splats` and repaired by this workspace's D and U
     (the repair stage's settings): the next round's pseudo references."""
     repairer = workspace_repairer(ws, device, seed)
-    return [dataclasses.replace(f, image=ensemble_repair([splats], f, background, repairer, device)[1])
-            for f in frames]
+    return [dataclasses.replace(f, image=ensemble_repair([splats], f, background, repairer, device)[1]) for f in frames]
 
 
 def lpips_for_training(cfg: FineConfig, device: torch.device):
@@ -89,8 +91,10 @@ def start_of(cfg: FineConfig, scene: PreparedScene) -> str:
     except InputError:  # the photos' strict hull is empty: the init's tolerant hull decides
         return "hull"
     if cut > HULL_CUT_LIMIT:
-        log(f"fine: the hull of the other photos leaves out {cut:.1%} of each photo's mask (a mask misses part of the "
-            f"object, or the photos crop it) -> G_f starts from G_c, not from the hull")
+        log(
+            f"fine: the hull of the other photos leaves out {cut:.1%} of each photo's mask (a mask misses part of the "
+            f"object, or the photos crop it) -> G_f starts from G_c, not from the hull"
+        )
         return "coarse"
     return "hull"
 
@@ -107,8 +111,9 @@ def starting_splats(ws: Workspace, scene: PreparedScene, cfg: FineConfig, seed: 
 
 
 def run_fine(ws: Workspace, cfg: FineConfig, env: StageEnv, force: bool = False) -> bool:
-    return ws.run_stage("fine", cfg, {"seed": env.seed}, force,
-                        lambda run: train_fine(run, ws, cfg, env.device, env.seed))
+    return ws.run_staged(
+        "fine", cfg, {"seed": env.seed}, force, lambda run: train_fine(run, ws, cfg, env.device, env.seed)
+    )
 
 
 @dataclasses.dataclass
@@ -122,12 +127,19 @@ class FineInputs:
     frames: list[Frame]
     weights: list[float]
     background: torch.Tensor
-    lpips_fn: object
+    lpips_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None
     lpips_term: dict
 
     def pseudo(self, cfg: FineConfig, frames: list[Frame] | None = None) -> PseudoViews:
-        return PseudoViews(self.frames if frames is None else frames, self.weights, pseudo_schedule(cfg),
-                           self.background, cfg.pseudo_every, self.lpips_fn, cfg.lpips_weight)
+        return PseudoViews(
+            self.frames if frames is None else frames,
+            self.weights,
+            pseudo_schedule(cfg),
+            self.background,
+            cfg.pseudo_every,
+            self.lpips_fn,
+            cfg.lpips_weight,
+        )
 
 
 def fine_inputs(ws: Workspace, cfg: FineConfig, device: torch.device, seed: int) -> FineInputs:
@@ -149,20 +161,40 @@ def train_fine(run: StageRun, ws: Workspace, cfg: FineConfig, device: torch.devi
             splats = res.splats
             frames = repaired_again(ws, splats, frames, bg, device, seed)
         pseudo = inputs.pseudo(cfg, frames)
-        res = train_gaussians(splats, scene.train, cfg, device, extent=1.0,
-                              desc="fine" if cfg.rounds == 1 else f"fine round {r}", seed=seed + r - 1,
-                              has_masks=scene.has_masks, pseudo=pseudo,
-                              checkpoint=run.checkpointer("gf" if r == 1 else f"gf{r}"), probe=probe)
+        res = train_gaussians(
+            splats,
+            scene.train,
+            cfg,
+            device,
+            extent=1.0,
+            desc="fine" if cfg.rounds == 1 else f"fine round {r}",
+            seed=seed + r - 1,
+            has_masks=scene.has_masks,
+            pseudo=pseudo,
+            checkpoint=run.checkpointer("gf" if r == 1 else f"gf{r}"),
+            probe=probe,
+        )
         # rounds follow each other on one time axis
         curve += [{**p, "seconds": round(p["seconds"] + offset, 3), "round": r} for p in res.curve]
         probe_s += res.probe_seconds
         offset += res.seconds
+    assert res is not None  # at least one round
     if probe is not None:
         write_curve(run.output("curve"), dataclasses.replace(res, curve=curve, probe_seconds=probe_s), probe_names)
     save_checkpoint(run.output("model"), res.splats, scene.norm, res.iterations)
     n = export_ply(run.output("ply"), to_world(res.splats, scene.norm), VIEWER_SH_DEGREE)
-    run.record.update({"num_gaussians": n, "iterations": res.iterations, "num_pseudo": len(frames),
-                       "rounds": max(1, cfg.rounds), "start": start, "lpips_term": inputs.lpips_term,
-                       "train_seconds": round(res.seconds, 2), "final_loss": res.losses[-1], "seed": seed})
+    run.record.update(
+        {
+            "num_gaussians": n,
+            "iterations": res.iterations,
+            "num_pseudo": len(frames),
+            "rounds": max(1, cfg.rounds),
+            "start": start,
+            "lpips_term": inputs.lpips_term,
+            "train_seconds": round(res.seconds, 2),
+            "final_loss": res.losses[-1],
+            "seed": seed,
+        }
+    )
     origin = {"hull": "the visual hull", "carved hull": "the carved visual hull"}.get(start, "G_c")
     return f"fine: {n} Gaussians trained from {origin}, {len(frames)} pseudo views, {res.seconds:.1f} s"

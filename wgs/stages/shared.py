@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
+import numpy as np
 import torch
 
 from ..config import METHOD, REGISTRY, TABLE_OF, BaselineConfig, CoarseConfig, TrainConfig, time_boxed
@@ -39,8 +40,9 @@ def initial_splats(scene: PreparedScene, cfg: TrainConfig, seed: int, hull: Hull
     return create_splats(pts, cols, scales, cfg.sh_degree)
 
 
-def plain_3dgs_config(coarse: CoarseConfig, budget_s: float, coarse_train_s: float,
-                      headroom: float = BaselineConfig.headroom) -> CoarseConfig:
+def plain_3dgs_config(
+    coarse: CoarseConfig, budget_s: float, coarse_train_s: float, headroom: float = BaselineConfig.headroom
+) -> CoarseConfig:
     """Plain 3DGS for a training-time budget (what the time would buy without the repair): the
     coarse stage's settings for one model, time-boxed (`config.time_boxed`) from G_c's own rate."""
     return dataclasses.replace(time_boxed(coarse, budget_s, coarse_train_s, headroom), ensemble=1)
@@ -50,7 +52,8 @@ def recorded_config(ws, stage: str) -> Any:
     """The settings `stage` last ran with, from its manifest (defaults where it has none)."""
     cls = next(s.config for s in REGISTRY if s.name == stage)
     recorded = (ws.manifest(stage) or {}).get("config") or {}
-    return cls(**{k: v for k, v in recorded.items() if k in cls.__dataclass_fields__})
+    names = {f.name for f in dataclasses.fields(cls)}
+    return cls(**{k: v for k, v in recorded.items() if k in names})
 
 
 def background_for(scene: PreparedScene) -> torch.Tensor:
@@ -58,7 +61,7 @@ def background_for(scene: PreparedScene) -> torch.Tensor:
     return torch.ones(3) if scene.has_masks else torch.zeros(3)
 
 
-def subbands_hwc(img: torch.Tensor) -> dict[str, object]:
+def subbands_hwc(img: torch.Tensor) -> dict[str, np.ndarray]:
     """[H, W, 3] -> {"LL","LH","HL","HH": [h, w, 3] numpy} with one Haar level."""
     ll, [(lh, hl, hh)] = dwt2(img.permute(2, 0, 1)[None].double(), 1)
     return {n: b[0].permute(1, 2, 0).float().numpy() for n, b in (("LL", ll), ("LH", lh), ("HL", hl), ("HH", hh))}
@@ -74,8 +77,15 @@ def stage_times(ws) -> list[dict[str, Any]]:
         if m is None:
             continue
         cum += m.get("wall_time_s", 0.0)
-        rows.append({"stage": st, "wall_time_s": m.get("wall_time_s", 0.0), "cumulative_s": round(cum, 2),
-                     "peak_memory_mb": m.get("peak_memory_mb"), "estimate_s": estimate.get(TABLE_OF[st])})
+        rows.append(
+            {
+                "stage": st,
+                "wall_time_s": m.get("wall_time_s", 0.0),
+                "cumulative_s": round(cum, 2),
+                "peak_memory_mb": m.get("peak_memory_mb"),
+                "estimate_s": estimate.get(TABLE_OF[st]),
+            }
+        )
     return rows
 
 
@@ -97,9 +107,14 @@ def member_file(i: int) -> str:
 def coarse_members(ws, scene: PreparedScene, device: torch.device) -> list[Splats]:
     """G_c and the coarse stage's other ensemble members (as many as it trained)."""
     n = int((ws.manifest("coarse") or {}).get("ensemble", 1))
-    return [load_checkpoint(ws.output("coarse", "model") if i == 0 else ws.output("coarse", "members", member_file(i)),
-                            scene.norm, device)[0]
-            for i in range(n)]
+    return [
+        load_checkpoint(
+            ws.output("coarse", "model") if i == 0 else ws.output("coarse", "members", member_file(i)),
+            scene.norm,
+            device,
+        )[0]
+        for i in range(n)
+    ]
 
 
 def workspace_repairer(ws, device: torch.device, seed: int) -> Repairer:
@@ -108,9 +123,14 @@ def workspace_repairer(ws, device: torch.device, seed: int) -> Repairer:
 
 
 @torch.no_grad()
-def ensemble_repair(members: list[Splats], frame: Frame, background: torch.Tensor, repairer: Repairer,
-                    device: torch.device, first_render: torch.Tensor | None = None
-                    ) -> tuple[torch.Tensor, torch.Tensor, dict, dict]:
+def ensemble_repair(
+    members: list[Splats],
+    frame: Frame,
+    background: torch.Tensor,
+    repairer: Repairer,
+    device: torch.device,
+    first_render: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, dict, dict]:
     """The pseudo reference at one camera: every member's render repaired by D and U, averaged.
 
     Member k's D sees its render under its own symmetries of the square (k * n .. k * n + n - 1 for
@@ -123,8 +143,9 @@ def ensemble_repair(members: list[Splats], frame: Frame, background: torch.Tenso
     n = repairer.symmetries
     fixed = []
     for k, splats in enumerate(members):
-        render = first_render if k == 0 and first_render is not None else render_frame(splats, frame, device,
-                                                                                       background)[0]
+        render = (
+            first_render if k == 0 and first_render is not None else render_frame(splats, frame, device, background)[0]
+        )
         fn = symmetrized(repairer.fn, n, first=k * n)
         out, bands_in_k, bands_out = repair_image(render, fn, repairer.U, domain, device, levels)
         if k == 0:

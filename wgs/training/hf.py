@@ -12,7 +12,7 @@ import torch
 
 from ..models.hf_unet import HFUNet
 from ..wavelet.haar import dwt2, stack_highs
-from .loop import FitPlan, FitState, fit
+from .loop import FitPlan, FitState, fit, scalar
 
 
 def hf_triplet(render: torch.Tensor, ref: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -33,9 +33,19 @@ def hf_l1(model: HFUNet, render: torch.Tensor, ref: torch.Tensor) -> torch.Tenso
     return (model(hc, ll) - hr).abs().mean()
 
 
-def train_hf(model: HFUNet, batch: Callable[[], tuple[torch.Tensor, torch.Tensor]], plan: FitPlan,
-             gen: torch.Generator, opt: torch.optim.Optimizer, held: tuple[torch.Tensor, torch.Tensor], *,
-             start_is_bar: bool, name: str = "U", chunk: int = 64, **loop: Any) -> tuple[HFUNet, FitState, float]:
+def train_hf(
+    model: HFUNet,
+    batch: Callable[[], tuple[torch.Tensor, torch.Tensor]],
+    plan: FitPlan,
+    gen: torch.Generator,
+    opt: torch.optim.Optimizer,
+    held: tuple[torch.Tensor, torch.Tensor],
+    *,
+    start_is_bar: bool,
+    name: str = "U",
+    chunk: int = 64,
+    **loop: Any,
+) -> tuple[HFUNet, FitState, float]:
     """Train U on `batch()` -> (render, reference) crops; held: held-out (render, reference) crops.
     start_is_bar: the starting weights must be beaten too (U from the prior). Returns U (its best
     held-out state), the loop's state and the held-out L1 of no repair."""
@@ -43,13 +53,28 @@ def train_hf(model: HFUNet, batch: Callable[[], tuple[torch.Tensor, torch.Tensor
     identity = identity_l1(*held)
 
     @torch.no_grad()
-    def held_out_l1(m: torch.nn.Module) -> float:
+    def held_out_l1(m: HFUNet) -> float:
         if len(v_hc) <= chunk:
             return (m(v_hc, v_ll) - v_hr).abs().mean().item()
-        return sum((m(v_hc[i:i + chunk], v_ll[i:i + chunk]) - v_hr[i:i + chunk]).abs().sum().item()
-                   for i in range(0, len(v_hc), chunk)) / v_hr.numel()
+        return (
+            sum(
+                (m(v_hc[i : i + chunk], v_ll[i : i + chunk]) - v_hr[i : i + chunk]).abs().sum().item()
+                for i in range(0, len(v_hc), chunk)
+            )
+            / v_hr.numel()
+        )
 
     bar = min(identity, held_out_l1(model)) if start_is_bar else identity
-    model, st = fit(model, opt, lambda step: hf_l1(model, *batch()), plan, name, gen=gen, evaluate=held_out_l1,
-                    monitor=lambda v: v, bar=bar, **loop)
+    model, st = fit(
+        model,
+        opt,
+        lambda step: hf_l1(model, *batch()),
+        plan,
+        name,
+        gen=gen,
+        evaluate=held_out_l1,
+        monitor=scalar,
+        bar=bar,
+        **loop,
+    )
     return model, st, identity

@@ -14,7 +14,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 import torch
 
@@ -83,8 +83,13 @@ class FitState:
         """The curve with the run's bar, best evaluation, last step and seconds (for curves.json
         and provenance files)."""
         finite = lambda x: x if math.isfinite(x) else None  # noqa: E731 (JSON has no inf)
-        return {**self.curve, "bar": finite(self.bar), "best": finite(self.best), "stopped_at": self.stopped_at,
-                "seconds": round(self.seconds, 1)}
+        return {
+            **self.curve,
+            "bar": finite(self.bar),
+            "best": finite(self.best),
+            "stopped_at": self.stopped_at,
+            "seconds": round(self.seconds, 1),
+        }
 
 
 class LoopCheckpoint(Protocol):
@@ -96,15 +101,31 @@ class LoopCheckpoint(Protocol):
 
 
 Evaluation = float | dict[str, float]
+M = TypeVar("M", bound=torch.nn.Module)
 
 
-def fit(model: torch.nn.Module, opt: torch.optim.Optimizer, batch_loss: Callable[[int], torch.Tensor], plan: FitPlan,
-        name: str, *, gen: torch.Generator | None = None,
-        evaluate: Callable[[torch.nn.Module], Evaluation] | None = None,
-        monitor: Callable[[Evaluation], float] | None = None, bar: float = math.inf,
-        checkpoint: LoopCheckpoint | None = None, on_record: Callable[[FitState], None] | None = None,
-        after_step: Callable[[int, Callable[[], dict[str, Any]]], None] | None = None
-        ) -> tuple[torch.nn.Module, FitState]:
+def scalar(evaluation: Evaluation) -> float:
+    """The number to minimise where the evaluation is one number (`fit`'s monitor)."""
+    if isinstance(evaluation, dict):
+        raise TypeError("a scalar evaluation was expected")
+    return evaluation
+
+
+def fit(
+    model: M,
+    opt: torch.optim.Optimizer,
+    batch_loss: Callable[[int], torch.Tensor],
+    plan: FitPlan,
+    name: str,
+    *,
+    gen: torch.Generator | None = None,
+    evaluate: Callable[[M], Evaluation] | None = None,
+    monitor: Callable[[Evaluation], float] | None = None,
+    bar: float = math.inf,
+    checkpoint: LoopCheckpoint | None = None,
+    on_record: Callable[[FitState], None] | None = None,
+    after_step: Callable[[int, Callable[[], dict[str, Any]]], None] | None = None,
+) -> tuple[M, FitState]:
     """Train `model` with `opt` for `plan.steps` steps of `batch_loss(step)`.
 
     evaluate(module) runs every `plan.eval_every` steps on the EMA (when `plan.ema_decay` is set) or
@@ -121,10 +142,15 @@ def fit(model: torch.nn.Module, opt: torch.optim.Optimizer, batch_loss: Callable
     t0 = time.perf_counter()
 
     def snapshot() -> dict[str, Any]:
-        return {"model": model.state_dict(), "ema": None if ema is None else ema.state_dict(),
-                "opt": opt.state_dict(), "generator": None if gen is None else gen.get_state(),
-                "rng": torch.get_rng_state(), "best_state": best_state,
-                "loop": {**asdict(st), "seconds": st.seconds + time.perf_counter() - t0}}
+        return {
+            "model": model.state_dict(),
+            "ema": None if ema is None else ema.state_dict(),
+            "opt": opt.state_dict(),
+            "generator": None if gen is None else gen.get_state(),
+            "rng": torch.get_rng_state(),
+            "best_state": best_state,
+            "loop": {**asdict(st), "seconds": st.seconds + time.perf_counter() - t0},
+        }
 
     if checkpoint is not None and (saved := checkpoint.load()) is not None:
         if "loop" not in saved:
@@ -172,8 +198,7 @@ def fit(model: torch.nn.Module, opt: torch.optim.Optimizer, batch_loss: Callable
     return judged.eval(), st
 
 
-def record(st: FitState, judged: torch.nn.Module, evaluate: Callable[[torch.nn.Module], Evaluation] | None,
-           step: int) -> None:
+def record(st: FitState, judged: M, evaluate: Callable[[M], Evaluation] | None, step: int) -> None:
     """One curve entry: the step, the mean loss since the last entry, and the evaluation."""
     st.curve["step"].append(step)
     st.curve["loss"].append(st.loss_sum / max(st.loss_n, 1))

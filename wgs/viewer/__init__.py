@@ -19,9 +19,14 @@ import torch
 from ..errors import InputError
 
 STATIC = Path(__file__).parent / "static"
-TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8",
-         ".json": "application/json", ".splat": "application/octet-stream", ".png": "image/png",
-         ".gif": "image/gif"}
+TYPES = {
+    ".html": "text/html; charset=utf-8",
+    ".js": "text/javascript; charset=utf-8",
+    ".json": "application/json",
+    ".splat": "application/octet-stream",
+    ".png": "image/png",
+    ".gif": "image/gif",
+}
 
 
 @dataclass
@@ -87,10 +92,17 @@ def site(ws, stage: str | None) -> dict[str, bytes | Path]:
         "/gsplat.es.js": STATIC / "gsplat.es.js",
         "/LICENSE.gsplat": STATIC / "LICENSE.gsplat",
         "/model.splat": splat_bytes(splats, torch.from_numpy(frame.R), torch.from_numpy(frame.t)),
-        "/view.json": json.dumps({"stage": stage, "gaussians": int(splats["means"].shape[0]),
-                                  "alpha": frame.alpha, "beta": frame.beta, "radius": frame.radius,
-                                  "focal": float(first.K[1, 1]) / first.height,  # the photos' field of view
-                                  "report": report.is_file()}).encode(),
+        "/view.json": json.dumps(
+            {
+                "stage": stage,
+                "gaussians": int(splats["means"].shape[0]),
+                "alpha": frame.alpha,
+                "beta": frame.beta,
+                "radius": frame.radius,
+                "focal": float(first.K[1, 1]) / first.height,  # the photos' field of view
+                "report": report.is_file(),
+            }
+        ).encode(),
     }
     if report.is_file():
         files["/report.html"] = report

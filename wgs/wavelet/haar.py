@@ -83,7 +83,7 @@ def idwt2(ll: torch.Tensor, highs: list[Highs], size: tuple[int, int] | None = N
         raise ValueError("highs must hold at least one level")
     x = ll
     for j in range(len(highs) - 1, -1, -1):
-        target = tuple(highs[j - 1][0].shape[-2:]) if j > 0 else size
+        target = (int(highs[j - 1][0].shape[-2]), int(highs[j - 1][0].shape[-1])) if j > 0 else size
         x = idwt2_level(x, highs[j], target)
     return x
 
