@@ -74,6 +74,7 @@ class PrepareConfig(MaskParams):
         "auto",
         "Object masks: auto makes them where the scene has none (salient-object network + agreement between the "
         "posed views), none makes none, or a folder of masks named like the images.",
+        metavar="auto|none|DIR",
     )
     # where the object's leave-one-out silhouettes back a mirror plane (wgs.shape.symmetry), the
     # training photos' mirror images join them as training views: "outline" teaches where the object
@@ -161,17 +162,18 @@ class FinetuneConfig:
         "embedded: our CPU-sized denoiser; controlnet: SD 1.5 + ControlNet-tile + LoRA.",
         choices=("embedded", "controlnet"),
     )
-    sd_model: str | None = option(None, "Local Stable Diffusion 1.5 folder.")
-    controlnet: str | None = option(None, "Local ControlNet-tile folder.")
+    sd_model: str | None = option(None, "Local Stable Diffusion 1.5 folder.", metavar="DIR")
+    controlnet: str | None = option(None, "Local ControlNet-tile folder.", metavar="DIR")
     lora_rank: int = 64
     lora_lr: float = 1e-3
     lora_steps: int = 500
     lora_crop: int = 64
-    use_u: bool = option(True, "Train and use the HF U-Net U.")
+    use_u: bool = option(True, "Train and use the HF U-Net U.", flags=("--u/--no-u",))
     prior: str = option(
         "builtin",
         "Start D and U from the pretrained repair prior (builtin), train them from scratch (none), or from a prior "
         "folder with D/ and U/.",
+        metavar="builtin|none|DIR",
     )
     prior_steps: int = option(
         150, "Fine-tune steps of the prior's D on this object's pairs (0: the prior as shipped).", bounds=(0, None)
@@ -239,7 +241,7 @@ class LpipsWeightsConfig:
     """Where LPIPS weights are looked for, the same for the fine stage's LPIPS term and eval."""
 
     lpips_weights: str | None = option(
-        None, "Folder with LPIPS weights (else $WGS_LPIPS_WEIGHTS, $TORCH_HOME/hub/checkpoints)."
+        None, "Folder with LPIPS weights (else $WGS_LPIPS_WEIGHTS, $TORCH_HOME/hub/checkpoints).", metavar="DIR"
     )
 
 

@@ -17,14 +17,18 @@ def option(
     choices: tuple[str, ...] | None = None,
     bounds: tuple[float, float | None] | None = None,
     flags: tuple[str, ...] | None = None,
+    metavar: str | None = None,
     required: bool = False,
 ) -> Any:
     """A dataclass field with its default and its facts: `meaning` (the command line's help; None:
     not offered there), `choices`, `bounds` (inclusive; None: open), `flags` (its names on the
-    command line where they are not --field-name), `required` (a command's option without default)."""
+    command line where they are not --field-name), `metavar` (what a value looks like where its type
+    says too little), `required` (a command's option without default)."""
     meta: dict[str, Any] = {}
     if flags is not None:
         meta["flags"] = flags
+    if metavar is not None:
+        meta["metavar"] = metavar
     if required:
         meta["required"] = True
     if meaning is not None:

@@ -15,28 +15,12 @@ from typing import Any
 
 import click
 
-from ..config import CHOICES, PRESETS, RANGES, STAGES, field_types
+from ..config import PRESETS, STAGES, field_types
 from ..fields import facts, option
-
-# flags whose names differ from their field: field -> click declaration
-FLAG_NAMES: dict[str, str] = {"use_u": "--u/--no-u"}
-# what a value looks like where its type says too little
-METAVARS: dict[str, str] = {
-    "prior": "builtin|none|DIR",
-    "masks": "auto|none|DIR",
-    "sd_model": "DIR",
-    "controlnet": "DIR",
-    "lpips_weights": "DIR",
-}
 
 
 def _shown(value: Any) -> str:
     return "none" if value is None else str(value).lower() if isinstance(value, bool) else str(value)
-
-
-def option_type(name: str, tp: Any) -> click.ParamType:
-    """The click type of a config field: its choices, its range, or its plain type."""
-    return click_type({"choices": CHOICES.get(name), "range": RANGES.get(name)}, tp)
 
 
 def click_type(facts_: Mapping[str, Any], tp: Any) -> click.ParamType:
@@ -52,32 +36,42 @@ def click_type(facts_: Mapping[str, Any], tp: Any) -> click.ParamType:
     return plain.get(tp, click.STRING)
 
 
-def settings_options(cls: type) -> Callable:
-    """A command's options from its settings dataclass (`fields.option`), one per field in order:
-    typed, with the field's meaning as help, its choices or range, and its default (which click
-    states, `show_default`). A bool field is a flag."""
-    types = field_types(cls)
+def field_option(cls: type, name: str, from_config: bool) -> Callable:
+    """The click option of field `name` of dataclass `cls`, from its facts (`fields.option`): its
+    names (--name-with-dashes unless `flags`), type, choices or range, metavar and help.
+    from_config: a stage config's field, whose value the config resolves (defaults < preset < file
+    < command line): click's default is None and the help states the config's default, and a bool
+    is --name/--no-name; else a command's own setting, whose click default is the field's (click
+    states it) and a bool a flag."""
+    meta = facts(cls, name)
+    tp = field_types(cls)[name]
+    base = next((a for a in getattr(tp, "__args__", (tp,)) if a is not type(None)), tp)
+    default = next(f.default for f in dataclasses.fields(cls) if f.name == name)
+    flag = "--" + name.replace("_", "-")
+    text = meta["help"]
+    if from_config and default is not None:
+        text = f"{text} (default {_shown(default)})"
+    if base is bool:  # --name/--no-name (None: the config decides) or a plain flag
+        if from_config:
+            return click.option(*meta.get("flags", (f"{flag}/--no-{flag[2:]}",)), name, default=None, help=text)
+        return click.option(*meta.get("flags", (flag,)), name, is_flag=True, default=default, help=text)
+    return click.option(
+        *meta.get("flags", (flag,)),
+        name,
+        type=click_type(meta, base),
+        default=None if from_config else default,
+        required=meta.get("required", False),
+        metavar=meta.get("metavar"),
+        help=text,
+    )
 
-    def one(field: dataclasses.Field) -> Callable:
-        meta = facts(cls, field.name)
-        tp = types[field.name]
-        base = next((a for a in getattr(tp, "__args__", (tp,)) if a is not type(None)), tp)
-        decls = meta.get("flags", ("--" + field.name.replace("_", "-"),))
-        text = meta["help"]
-        if base is bool:
-            return click.option(*decls, field.name, is_flag=True, default=field.default, help=text)
-        return click.option(
-            *decls,
-            field.name,
-            type=click_type(meta, base),
-            default=field.default,
-            required=meta.get("required", False),
-            help=text,
-        )
+
+def settings_options(cls: type) -> Callable:
+    """A command's options from its settings dataclass, one per field in order (`field_option`)."""
 
     def apply(f: Callable) -> Callable:
         for field in reversed(dataclasses.fields(cls)):
-            f = one(field)(f)
+            f = field_option(cls, field.name, from_config=False)(f)
         return f
 
     return apply
@@ -93,27 +87,8 @@ class ModelChoice:
 
 
 def config_option(table: str, name: str) -> Callable:
-    """A click option for field `name` of stage table `table`'s config: `--name-with-dashes`
-    (or `FLAG_NAMES`), typed, validated and with its default stated from the config."""
-    cls = STAGES[table]
-    tp = field_types(cls)[name]
-    base = next((a for a in getattr(tp, "__args__", (tp,)) if a is not type(None)), tp)
-    default = next(f.default for f in dataclasses.fields(cls) if f.name == name)
-    text = facts(cls, name)["help"]
-    if default is not None:
-        text = f"{text} (default {_shown(default)})"
-    flag = "--" + name.replace("_", "-")
-    if base is bool:
-        decl = FLAG_NAMES.get(name, f"{flag}/--no-{flag[2:]}")
-        return click.option(decl, name, default=None, help=text)
-    return click.option(
-        FLAG_NAMES.get(name, flag),
-        name,
-        type=option_type(name, base),
-        default=None,
-        help=text,
-        metavar=METAVARS.get(name),
-    )
+    """The click option of field `name` of stage table `table`'s config (`field_option`)."""
+    return field_option(STAGES[table], name, from_config=True)
 
 
 def config_options(table: str, *names: str) -> Callable:

@@ -47,6 +47,19 @@ def progress(prog, status: Callable[[FitState], str]) -> Callable[[FitState], No
     return lambda st: prog.update(BAR, completed=st.step, status=status(st))
 
 
+def d_batches(
+    cfg: FinetuneConfig, clean: torch.Tensor, bad: torch.Tensor, device: torch.device, gen: torch.Generator
+) -> Callable[[], tuple[torch.Tensor, torch.Tensor]]:
+    """D's training batches: `cfg.d_batch` random (clean, corrupted) crops of `cfg.d_crop` px."""
+
+    def batch() -> tuple[torch.Tensor, torch.Tensor]:
+        adapt_threads()
+        idx = torch.randint(clean.shape[0], (cfg.d_batch,), generator=gen)
+        return crops_on(device, clean, bad, idx, cfg.d_crop, gen)
+
+    return batch
+
+
 def train_scratch_d(
     cfg: FinetuneConfig,
     clean: torch.Tensor,
@@ -62,10 +75,7 @@ def train_scratch_d(
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.d_lr, weight_decay=0.0)
     plan = FitPlan(cfg.d_steps, cfg.d_lr, eval_every=25, ema_decay=cfg.ema_decay)
 
-    def batch() -> tuple[torch.Tensor, torch.Tensor]:
-        adapt_threads()
-        idx = torch.randint(clean.shape[0], (cfg.d_batch,), generator=gen)
-        return crops_on(device, clean, bad, idx, cfg.d_crop, gen)
+    batch = d_batches(cfg, clean, bad, device, gen)
 
     with progress_bar("finetune D", cfg.d_steps) as prog, deferred_stop():
         model, st = train_denoiser(
@@ -164,10 +174,7 @@ def finetune_prior_d(
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.prior_lr, weight_decay=0.0)
     plan = FitPlan(cfg.prior_steps, cfg.prior_lr, cfg.prior_eval_every, patience=cfg.prior_patience, keep_best=True)
 
-    def batch() -> tuple[torch.Tensor, torch.Tensor]:
-        adapt_threads()
-        idx = torch.randint(clean.shape[0], (cfg.d_batch,), generator=gen)
-        return crops_on(device, clean, bad, idx, cfg.d_crop, gen)
+    batch = d_batches(cfg, clean, bad, device, gen)
 
     with progress_bar("finetune D (prior)", cfg.prior_steps) as prog:
         held = (held_clean.to(device), held_bad.to(device))
