@@ -229,3 +229,27 @@ def test_wgs_reads_no_file_with_pickle_code():
                     f"{p}:{node.lineno}"
                 )
     assert loads >= 2
+
+
+@pytest.mark.parametrize("debug", [False, True])
+def test_unexpected_error_in_a_stage_is_one_line_and_a_log(ws, monkeypatch, capfd, debug):
+    """A bug inside a stage: one `error:` line naming the log file in the workspace, exit 1, no
+    traceback; --debug shows the traceback instead."""
+    from wgs.cli import main
+
+    def broken(*_args, **_kw):
+        raise ZeroDivisionError("a fault injected\ninto the fine stage")
+
+    monkeypatch.setattr("wgs.stages.s5_fine.run_fine", broken)
+    if debug:
+        with pytest.raises(ZeroDivisionError):
+            main([str(a) for a in wgs(ws, "--debug", "fine", "--force")])
+        assert not (ws / "logs").exists()
+        return
+    line = expect_error(ws.parent, wgs(ws, "fine", "--force"), "unexpected ZeroDivisionError", "--debug", code=1)
+    assert "a fault injected into the fine stage" in line
+    (log,) = (ws / "logs").glob("error-*.log")
+    assert str(log) in line
+    text = log.read_text()
+    assert "Traceback" in text and "ZeroDivisionError" in text and "command: wgs " in text
+    assert Workspace(ws).manifest("fine") is not None  # the finished stage is kept

@@ -61,7 +61,7 @@ def test_stage_seconds_grow_with_size_and_iterations():
     small = stage_seconds(CAL, configs(), SceneFacts(128, 128, 4, 8))
     large = stage_seconds(CAL, configs(), SceneFacts(256, 256, 4, 8))
     longer = stage_seconds(CAL, configs(coarse={"iterations": 3000}), SceneFacts(128, 128, 4, 8))
-    assert set(small) == {"prepare", "coarse", "mask_data", "finetune", "repair", "fine", "eval"}
+    assert set(small) == set(STAGES)
     for t in ("coarse", "mask_data", "fine", "repair", "eval"):
         assert large[t] > small[t]
     assert longer["coarse"] > 1.8 * (small["coarse"] - 25 * CAL.d_step_s)
@@ -212,3 +212,53 @@ def test_feature_budget_time_boxes_the_training_stages(tmp_path, monkeypatch):
     again = RunTiming(torch.device("cpu"), configs(), budget_s=600.0)
     monkeypatch.setattr("wgs.estimate._fresh", lambda ws, table, cfg, fields=None: True)
     assert again.after_prepare(ws, info, runs)["coarse"].max_seconds == cfgs["coarse"].max_seconds
+
+
+def test_every_stage_has_a_cost_model():
+    """Each config table in the registry is modelled, the on-request baseline too (it trains as long
+    as the method's stages from coarse to fine)."""
+    model = stage_seconds(CAL, configs(), SceneFacts(128, 128, 4, 8))
+    assert set(model) == set(STAGES)
+    method = sum(model[t] for t in ("coarse", "mask_data", "finetune", "repair", "fine"))
+    assert method < model["baseline"] < method + 2.0
+
+
+def test_a_stage_without_a_cost_model_is_estimated_as_unknown(tmp_path, monkeypatch):
+    """A stage the cost model lacks cannot crash a run: the line names it as unknown, its sum leaves it out."""
+    from wgs.estimate import estimate_line, per_stage
+    from wgs.workspace import Workspace
+
+    assert per_stage({"coarse": 60.0}, ("coarse", "baseline")) == {"coarse": 60.0, "baseline": None}
+    line = estimate_line({"coarse": 60.0, "baseline": None})
+    assert line.startswith("estimate: about 60 s on this machine and baseline unknown (no cost model)")
+    partial = stage_seconds  # the cost model without the baseline, as a new stage would be
+    monkeypatch.setattr(
+        "wgs.estimate.stage_seconds", lambda *a: {k: v for k, v in partial(*a).items() if k != "baseline"}
+    )
+    timing = RunTiming(torch.device("cpu"), configs())
+    timing._cal = CAL
+    ws = Workspace(tmp_path / "ws")
+    info = {"resolution": [64, 64], "train_names": ["a"] * 4, "test_names": ["b"] * 4, "has_masks": True}
+    timing.after_prepare(ws, info, ("prepare", "coarse", "baseline"))
+    estimate = ws.run_record()["estimate"]
+    assert estimate["baseline"] is None and estimate["coarse"] > 0
+
+
+def test_budget_with_the_baseline_halves_the_training():
+    """The baseline trains as long again as coarse to fine: a budget that includes it gives the
+    method's training stages about half the time."""
+    facts = SceneFacts(200, 200, 4, 8)
+    runs = ("coarse", "mask_data", "finetune", "repair", "fine", "eval")
+    alone = budget_plan(CAL, configs(), facts, 1200.0, runs)["seconds"]
+    both = budget_plan(CAL, configs(), facts, 1200.0, (*runs, "baseline"))["seconds"]
+    assert sum(alone.values()) == pytest.approx(1200.0, rel=0.02)
+    assert sum(both.values()) == pytest.approx(1200.0, rel=0.02)
+    assert both["coarse"] < 0.55 * alone["coarse"]
+    assert "baseline" in both and "baseline" not in alone
+
+
+def test_working_size_counts_the_baseline_when_asked():
+    facts = SceneFacts(1600, 1200, 4, 8, full_pixels=1600 * 1200)
+    k_alone, _ = choose_downscale(CAL, configs(), facts, 600.0)
+    k_both, total = choose_downscale(CAL, configs(), facts, 600.0, (*STAGES, "baseline"))
+    assert k_both >= k_alone and total is not None

@@ -29,6 +29,8 @@ from .config import (
     CPU_TARGET_S,
     GPU_MAX_SIZE,
     STAGE_OF_TABLE,
+    TABLE_OF,
+    UNASKED,
     CoarseConfig,
     FineConfig,
     MaskDataConfig,
@@ -59,7 +61,18 @@ FACTOR = {"coarse": 1.0, "mask_data": 0.8, "finetune": 1.75, "repair": 0.9, "fin
 # 4x the Gaussians (the fox at 213x379, 2026-11-27)
 NO_MASKS_FACTOR = 1.9
 # a stage's fixed part (loading, renders, files, the shape and carve steps), in D training steps
-FIXED_STEPS = {"prepare": 20, "coarse": 25, "mask_data": 15, "finetune": 20, "repair": 35, "fine": 10, "eval": 10}
+FIXED_STEPS = {
+    "prepare": 20,
+    "coarse": 25,
+    "mask_data": 15,
+    "finetune": 20,
+    "repair": 35,
+    "fine": 10,
+    "eval": 10,
+    "baseline": 10,
+}
+# the baseline trains plain 3DGS for as long as these stages took (`stages.baseline`)
+BASELINE_BUDGET = ("coarse", "mask_data", "finetune", "repair", "fine")
 D_STEP_BATCH, D_STEP_CROP, D_STEP_CHANNELS = 16, 32, 32  # the D training step timed
 # the HF U-Net U: a step's cost in D steps, and the share of its step limit it runs on average (it
 # stops early where it does not beat no repair: 250 of 1500 steps on lego, all 1500 on ethiopianHead)
@@ -69,6 +82,7 @@ U_STEP_SHARE, U_STEPS_RUN = 0.3, 0.5
 SIDE_BY_SIDE_THROUGHPUT = 1.5
 PREPARE_S_PER_MEGAPIXEL = 0.08  # reading, undistorting and downscaling a photo, per full-size megapixel
 TRAIN_STAGES = ("coarse", "mask_data", "fine")
+UNASKED_TABLES = tuple(TABLE_OF[name] for name in UNASKED)  # what `wgs all` runs unless asked for more
 
 
 @dataclass(frozen=True)
@@ -294,16 +308,27 @@ def stage_seconds(cal: Calibration, cfgs: dict[str, Any], facts: SceneFacts) -> 
         + gain * ensemble * per_render
         + ev.turntable_frames * cal.view_s(facts.pixels) / 2
     )
+    out["baseline"] = fixed["baseline"] + sum(out[t] for t in BASELINE_BUDGET)
     return {k: round(v, 1) for k, v in out.items()}
 
 
+def per_stage(model: dict[str, float], tables: tuple[str, ...]) -> dict[str, float | None]:
+    """The modelled seconds of each of `tables`, None (unknown) for a table the cost model lacks."""
+    return {t: model.get(t) for t in tables}
+
+
 def choose_downscale(
-    cal: Calibration, cfgs: dict[str, Any], facts: SceneFacts, target_s: float | None
+    cal: Calibration,
+    cfgs: dict[str, Any],
+    facts: SceneFacts,
+    target_s: float | None,
+    runs: tuple[str, ...] = UNASKED_TABLES,
 ) -> tuple[int, float | None]:
     """The working size for the machine: on a GPU a long side of at most GPU_MAX_SIZE; else (or
     within a budget) the largest integer downscale of the photos (`facts` at full size) at which
     the modelled `wgs all` takes at most `target_s`, but not below MIN_SIZE. Returns (downscale,
-    modelled seconds at it, or None on a GPU without a target)."""
+    modelled seconds at it, or None on a GPU without a target); `runs`: the config tables of the
+    stages that run."""
     first = downscale_for(facts.width, facts.height, GPU_MAX_SIZE) if cal.device != "cpu" else 1
     if target_s is None:
         return first, None
@@ -311,7 +336,8 @@ def choose_downscale(
     k, total = first, math.inf
     for k in range(first, last + 1):
         w, h = facts.width // k, facts.height // k
-        total = sum(stage_seconds(cal, cfgs, dataclasses.replace(facts, width=w, height=h)).values())
+        model = stage_seconds(cal, cfgs, dataclasses.replace(facts, width=w, height=h))
+        total = sum(v or 0.0 for v in per_stage(model, runs).values())
         if total <= target_s:
             break
     return k, total
@@ -326,6 +352,9 @@ def budget_plan(
     "seconds": table -> planned seconds}."""
     model = stage_seconds(cal, cfgs, facts)
     fixed_s = {k: v * cal.d_step_s for k, v in FIXED_STEPS.items()}
+    if "baseline" in runs:  # it trains as long again as the method's stages take: they get half of the rest
+        after = sum(model[t] for t in runs if t not in BASELINE_BUDGET and t != "baseline")
+        left_s = (left_s - after - fixed_s["baseline"]) / 2 + after
     others = [t for t in ("finetune", "repair", "eval") if t in runs]
     trained = [t for t in TRAIN_STAGES if t in runs]
     train = max(left_s - sum(model[t] for t in others) - sum(fixed_s[t] for t in trained), 1.0)
@@ -339,6 +368,8 @@ def budget_plan(
         seconds[table] = round(fixed_s[table] + share, 1)
     for table in others:
         seconds[table] = model[table]
+    if "baseline" in runs:
+        seconds["baseline"] = round(fixed_s["baseline"] + sum(seconds[t] for t in BASELINE_BUDGET if t in seconds), 1)
     return {"stages": stages, "seconds": seconds}
 
 
@@ -357,10 +388,14 @@ def minutes(seconds: float) -> str:
     return f"{seconds / 60:.0f} min" if seconds >= 90 else f"{seconds:.0f} s"
 
 
-def estimate_line(model: dict[str, float], what: str = "estimate") -> str:
-    """`estimate: about 9 min on this machine (coarse 4 min, ...)`, the stages in `model`'s order."""
-    parts = ", ".join(f"{t.replace('_', '-')} {minutes(s)}" for t, s in model.items())
-    return f"{what}: about {minutes(sum(model.values()))} on this machine ({parts})"
+def estimate_line(model: dict[str, float | None], what: str = "estimate") -> str:
+    """`estimate: about 9 min on this machine (coarse 4 min, ...)`, the stages in `model`'s order;
+    a stage without a cost model (None) is named as unknown and left out of the sum."""
+    parts = ", ".join(f"{t.replace('_', '-')} {'unknown' if s is None else minutes(s)}" for t, s in model.items())
+    unknown = [t.replace("_", "-") for t, s in model.items() if s is None]
+    total = minutes(sum(s for s in model.values() if s is not None))
+    more = f" and {', '.join(unknown)} unknown (no cost model)" if unknown else ""
+    return f"{what}: about {total} on this machine{more} ({parts})"
 
 
 class RunTiming:
@@ -368,8 +403,12 @@ class RunTiming:
     machine or the budget, and, after prepare, the estimate of the stages still to run and the
     budget's plan, recorded in the workspace (`Workspace.run_record`)."""
 
-    def __init__(self, device: torch.device, cfgs: dict[str, Any], budget_s: float | None = None):
+    def __init__(
+        self, device: torch.device, cfgs: dict[str, Any], budget_s: float | None = None, asked: tuple[str, ...] = ()
+    ):
+        """`asked`: the stages that run only on request and were asked for (`wgs all --baseline`)."""
         self.device, self.cfgs, self.budget_s = device, cfgs, budget_s
+        self.runs = UNASKED_TABLES + tuple(TABLE_OF[name] for name in asked)
         self.started = time.perf_counter()
         self._cal: Calibration | None = None
         self.key = f"budget {budget_s:g} s" if budget_s else f"machine ({device.type})"
@@ -392,7 +431,7 @@ class RunTiming:
         facts = SceneFacts(
             width, height, n_train, n_test, full_pixels=width * height, has_masks=self.cfgs["prepare"].masks != "none"
         )
-        k, modelled = choose_downscale(cal, self.cfgs, facts, target)
+        k, modelled = choose_downscale(cal, self.cfgs, facts, target, self.runs)
         total = modelled if modelled is not None else math.inf  # a target gives a time
         limit = f"the budget of {minutes(target)}" if self.budget_s else f"about {minutes(target)}"
         if k == 1 and total <= target:
@@ -446,7 +485,7 @@ class RunTiming:
         if pending:
             cal = self.calibration()
             model = stage_seconds(cal, cfgs, facts)
-            estimate = {t: model[t] for t in pending}
+            estimate = per_stage(model, pending)
             log(estimate_line(estimate))
             record.update(
                 estimate=estimate,

@@ -62,7 +62,7 @@ def run_all(
     ws: Workspace = ctx.ws()
     device: torch.device = ctx.torch_device()
     cfgs = ctx.configs(preset, overrides)
-    timing = RunTiming(device, cfgs, budget_s)
+    timing = RunTiming(device, cfgs, budget_s, asked)
     outcomes: list[StageOutcome] = []
     info: dict[str, Any] | None = None
     for stage in REGISTRY:

@@ -39,7 +39,7 @@ def one(ws: Workspace, wall: float | None) -> dict:
     now = stage_seconds(cal, cfgs, SceneFacts(sc["width"], sc["height"], sc["train"], sc["test"], has_masks=masks))
     actual = {t: (ws.manifest(NAME[t]) or {}).get("wall_time_s") for t in TABLES}
     printed = run.get("estimate") or {}
-    shown = [t for t in TABLES if t != "prepare" and t in printed and actual[t] is not None]
+    shown = [t for t in TABLES if t != "prepare" and printed.get(t) is not None and actual[t] is not None]
     tot = {k: sum(d[t] for t in shown) for k, d in (("printed", printed), ("now", now), ("actual", actual))}
     res = ws.output("eval", "results")
     quality = {}

@@ -5,6 +5,7 @@ of this package."""
 from __future__ import annotations
 
 import errno
+import os
 import signal
 import sys
 from dataclasses import dataclass
@@ -82,6 +83,7 @@ def cli(
     configure_threads(threads)
     file_cfg = load_config_file(config_file) if config_file else {"global": {}}
     g = file_cfg["global"]
+    started = ctx.obj  # main()'s list, which learns the run's options for its crash log
     ctx.obj = RunOptions(
         workspace,
         device or g.get("device", "auto"),
@@ -92,6 +94,8 @@ def cli(
         checkpoint_every,
         config_file,
     )
+    if isinstance(started, list):
+        started.append(ctx.obj)
 
 
 def workspace_option(f):
@@ -136,11 +140,39 @@ def global_option_hint(name: str) -> str:
 INTERRUPTED = "interrupted: finished stages are kept; `wgs --resume ...` continues from the last saved state"
 
 
+def crash_log(exc: BaseException, args: list[str], options: RunOptions | None) -> Path:
+    """Write `exc`'s traceback, the command line and the versions to a log file: in the run's
+    workspace (WS/logs/) where it has one, else in the cache ($WGS_CACHE, default ~/.cache/wgs).
+    Returns its path."""
+    import datetime
+    import platform
+    import traceback
+
+    stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y%m%d-%H%M%S")
+    text = (
+        f"wgs {__version__}, Python {platform.python_version()}, {platform.platform()}\n"
+        f"command: wgs {' '.join(args)}\n\n" + "".join(traceback.format_exception(exc))
+    )
+    folders = [options.workspace / "logs"] if options is not None and options.workspace is not None else []
+    folders.append(Path(os.environ.get("WGS_CACHE") or Path.home() / ".cache" / "wgs") / "logs")
+    for folder in folders:
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            path = folder / f"error-{stamp}-{os.getpid()}.log"
+            path.write_text(text)
+            return path
+        except OSError:
+            continue
+    raise exc
+
+
 def main(argv: list[str] | None = None) -> None:
-    debug = "--debug" in (argv if argv is not None else sys.argv[1:])
+    args = list(argv if argv is not None else sys.argv[1:])
+    debug = "--debug" in args or os.environ.get("WGS_DEBUG", "0") not in ("", "0")
     install_stop_handlers()
+    started: list[RunOptions] = []
     try:
-        cli.main(args=argv, prog_name="wgs", standalone_mode=False)
+        cli.main(args=args, prog_name="wgs", standalone_mode=False, obj=started)
     except (click.exceptions.Abort, KeyboardInterrupt) as exc:
         stop = exc.__cause__ if isinstance(exc, click.exceptions.Abort) else exc  # click wraps the signal's
         click.echo(INTERRUPTED, err=True)
@@ -175,4 +207,15 @@ def main(argv: list[str] | None = None) -> None:
             else ""
         )
         click.echo(f"error: {where}{exc.strerror or exc}{hint}", err=True)
+        sys.exit(1)
+    except Exception as exc:  # a bug: one line, the traceback in a log file (--debug or WGS_DEBUG=1 shows it)
+        if debug:
+            raise
+        path = crash_log(exc, args, started[-1] if started else None)
+        what = " ".join(str(exc).split())[:200]
+        click.echo(
+            f"error: unexpected {type(exc).__name__}: {what} (a bug in wgs, please report it; details in {path}; "
+            "--debug shows them here)",
+            err=True,
+        )
         sys.exit(1)
