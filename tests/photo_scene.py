@@ -24,16 +24,23 @@ def make_photos(
     masks: bool = True,
     layout: str = "images",
     turntable: bool = False,
+    azimuths: list[float] | None = None,
+    shape_seed: int | None = None,
 ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Write `n` photos (`out/images/` or, with layout="flat", `out/`) and `out/masks/`; returns
-    {name: (K [3, 3], w2c [4, 4])}."""
+    """Write `n` photos (`out/images/` or, with layout="flat", `out/`) and `out/masks/`, on a ring
+    (or at `azimuths`, degrees); returns {name: (K [3, 3], w2c [4, 4])}. `shape_seed`: another
+    object (its parts' sizes and places drawn from it)."""
     rng = np.random.default_rng(seed)
     parts = []
-    for size, offset in (
+    placed = [
         ((0.7, 0.5, 0.45), (0, 0, 0)),
         ((0.3, 0.3, 0.35), (0.35, 0.2, 0.55)),
         ((0.25, 0.4, 0.2), (-0.45, -0.3, 0.3)),
-    ):
+    ]
+    if shape_seed is not None:
+        other = np.random.default_rng(shape_seed)
+        placed = [(tuple(other.uniform(0.15, 0.6, 3)), tuple(other.uniform(-0.5, 0.5, 3))) for _ in range(4)]
+    for size, offset in placed:
         m = superquadric(np.array(size), 0.6, 0.7, nu=24, nv=48)
         m.vertices = m.vertices + np.array(offset)
         m.face_colors = rng.uniform(0.1, 1.0, (len(m.faces), 3))  # a unique pattern: features match once
@@ -48,7 +55,7 @@ def make_photos(
     # turntable: the object turns, the room stays put in every photo (features there lie)
     bg = rng.uniform(0, 1, (height // 4, width // 4, 3)).repeat(4, 0).repeat(4, 1) if turntable else 0.45
     for i in range(n):
-        az = 2 * np.pi * i / n
+        az = np.radians(azimuths[i]) if azimuths is not None else 2 * np.pi * i / n
         el = np.deg2rad(25 + 10 * np.sin(3 * az))
         eye = radius * np.array([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), np.sin(el)])
         w2c = look_at(eye, np.zeros(3), np.array([0.0, 0.0, 1.0]))

@@ -201,7 +201,7 @@ def test_second_run_recomputes_nothing_and_fine_option_reruns_fine_and_eval(tiny
     assert m["start"] == "coarse"
 
 
-def test_left_out_without_masks_and_test_views(tiny, tmp_path):
+def test_without_masks_and_test_views(tiny, tmp_path):
     from wgs.io.images import read_image, write_png
 
     scene, cfg, _, _ = tiny
@@ -218,8 +218,12 @@ def test_left_out_without_masks_and_test_views(tiny, tmp_path):
     assert res.exit_code == 0, res.output
     ws = Workspace(tmp_path / "ws")
     assert ws.manifest("fine")["start"] == "coarse"  # no masks, no visual hull: G_f starts from G_c
-    # no test split in the dataset -> every 8th remaining view; here none remain, so no eval
-    assert ws.manifest("eval") is None
+    # no test split in the dataset -> every 8th remaining view; here none remain: eval scores what the
+    # scene can show, the fit at the training photos, and says so
+    results = json.loads(ws.output("eval", "results").read_text())
+    assert results["views"] == "training" and results["num_views"] == 4 and results["shape"] is None
+    report = ws.output("eval", "report").read_text()
+    assert "4 training views: there are no test views" in report
     out = " ".join(res.output.split())
     assert "no masks" in out and "no test views" in out
 

@@ -138,10 +138,11 @@ def test_flat_folder_of_photos_without_masks(tmp_path):
     assert scene.format == "photos" and len(scene.views) == res.registered
 
 
-def test_four_photos_say_how_to_pose_and_leave_the_workspace(tmp_path):
+def test_four_photos_with_sift_say_how_to_pose_and_leave_the_workspace(tmp_path):
     make_photos(tmp_path / "four", n=4)
     ws = tmp_path / "ws"
-    line = expect_error(tmp_path, ["-w", ws, "prepare", tmp_path / "four"], "photos", "of 4 photos", "--views 4")
+    args = ["-w", ws, "prepare", tmp_path / "four", "--matcher", "exhaustive"]
+    line = expect_error(tmp_path, args, "photos", "of 4 photos", "--views 4")
     assert "structure-from-motion needs many overlapping photos" in line
     assert not (ws / "sfm").exists() and not (ws / "scene").exists()
     assert not [p for p in ws.iterdir() if p.name != ".wgs.lock"] if ws.exists() else True

@@ -63,9 +63,20 @@ class PrepareConfig(MaskParams):
     # photos without poses: structure-from-motion (pycolmap)
     matcher: str = option(
         "auto",
-        "Photos without poses: feature matching for structure-from-motion (auto: exhaustive up to 150 photos, else "
-        "sequential by name).",
-        choices=("auto", "exhaustive", "sequential"),
+        "Photos without poses: feature matching for structure-from-motion (auto: learned matching for a few "
+        "photos, or where SIFT registers too few of a small set; SIFT exhaustive up to 150 photos, else sequential "
+        "by name).",
+        choices=("auto", "learned", "exhaustive", "sequential"),
+    )
+    focal: float | None = option(
+        None,
+        "Photos without poses: their focal length in pixels at full size, where known (else EXIF, else refined).",
+        bounds=(1, None),
+    )
+    fov: float | None = option(
+        None,
+        "Photos without poses: their horizontal field of view in degrees, where known (instead of --focal).",
+        bounds=(1, 179),
     )
     sfm_max_image_size: int = 1600  # SIFT on photos downscaled to this longest side
     # object masks: "auto" makes them where the scene has none (a salient-object network, then

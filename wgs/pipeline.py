@@ -32,13 +32,11 @@ class StageOutcome:
 def left_out(stage: str, info: dict[str, Any], force_repair: bool, asked: tuple[str, ...] = ()) -> str | None:
     """Why a scene does not need `stage` (one line for the log), or None when it runs; `asked`: the
     stages that run only on request and were asked for."""
-    n_train, n_test = len(info["train_names"]), len(info["test_names"])
+    n_train = len(info["train_names"])
     if stage not in UNASKED and stage not in asked:
         return f"not asked for (--{COMMANDS[stage]})"
     if stage in REPAIR_STAGES and n_train >= MANY_VIEWS and not force_repair:
         return f"{n_train} training views -> no diffusion repair (it is for sparse views; --force-repair runs it)"
-    if stage == "eval" and not n_test:
-        return "no test views -> no eval, no report numbers"
     return None
 
 
@@ -121,8 +119,9 @@ def print_summary(ws: Workspace, outcomes: list[StageOutcome]) -> None:
         r = read_json(res_path)
         c = r["coarse"]
 
+        views = "test views" if r.get("views", "test") == "test" else "training views (no test views)"
         results.print(
-            f"test views: {r['num_views']}   PSNR {fmt(c['psnr'], 2)} -> {fmt(r['psnr'], 2)} dB   "
+            f"{views}: {r['num_views']}   PSNR {fmt(c['psnr'], 2)} -> {fmt(r['psnr'], 2)} dB   "
             f"SSIM {fmt(c['ssim'])} -> {fmt(r['ssim'])}   LPIPS {fmt(c['lpips'])} -> {fmt(r['lpips'])}   "
             f"(coarse -> final)"
         )

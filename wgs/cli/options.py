@@ -116,6 +116,8 @@ ALL_FIELDS: dict[str, tuple[str, ...]] = {
     "downscale": ("prepare",),
     "max_size": ("prepare",),
     "matcher": ("prepare",),
+    "focal": ("prepare",),
+    "fov": ("prepare",),
     "masks": ("prepare",),
     "mirror": ("prepare",),
     "ensemble": ("coarse",),

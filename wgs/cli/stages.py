@@ -26,6 +26,8 @@ from .options import all_options, all_overrides, config_options, settings_option
     "max_size",
     "max_pixels",
     "matcher",
+    "focal",
+    "fov",
     "masks",
     "mask_agreement",
     "mask_voter_support",

@@ -1,14 +1,17 @@
 """Poses for photos that have none: structure-from-motion with pycolmap on the CPU.
 
-SIFT features (inside the masks when the photos have masks: on a turntable the background does
-not move with the object), exhaustive or sequential matching, incremental mapping; the largest
-model is kept and read back as a COLMAP scene. The model is written into the workspace, never
+A dense capture: SIFT features (inside the masks when the photos have masks: on a turntable the
+background does not move with the object), exhaustive or sequential matching. A few photos far
+apart: learned features and matches (`learned_matching`, as hloc feeds them to COLMAP), COLMAP's
+two-view verification, and a mapper that accepts wider baselines. Then incremental mapping; the
+largest model is kept and read back as a COLMAP scene. The model is written into the workspace, never
 beside the photos.
 """
 
 from __future__ import annotations
 
 import contextlib
+import itertools
 import shutil
 import sqlite3
 import threading
@@ -25,8 +28,18 @@ from ..io.images import IMAGE_EXTS, find_with_stem, image_size, read_image, to_m
 from ..progress import BAR, log, progress_bar
 from .native_colmap import pycolmap
 
-MATCHERS = ("auto", "exhaustive", "sequential")
+MATCHERS = ("auto", "learned", "exhaustive", "sequential")  # as PrepareConfig.matcher's choices (a test checks)
+SPARSE_UP_TO = 12  # photos; up to this many, learned matching (a sparse capture: SIFT poses few of them)
+LEARNED_FALLBACK_UP_TO = (
+    16  # photos; up to this many, learned matching where SIFT registers too few (n^2 pairs at ~1.5 s)
+)
 EXHAUSTIVE_UP_TO = 150  # photos; above this, sequential matching (pairs grow as n^2)
+MIN_PAIR_INLIERS = 15  # learned matching: verified matches that join two photos
+# learned matching: a photo on fewer than this share of the median photo's 3D points is left out
+# (generated object: a photo 140 degrees from the others, placed 167 degrees off, had 0.11; a
+# right one 45 degrees from its neighbour 0.18)
+WEAK_IMAGE_SHARE = 0.15
+WEAK_PAIR_SHARE = 0.25  # learned matching: a pair with fewer than this share of its photos' strongest pairs is dropped
 MIN_REGISTERED = 3
 MIN_SHARE = 0.5  # fewer registered photos than this share: posing failed
 FEW_PHOTOS = 10  # below this, say that structure-from-motion needs more overlapping photos
@@ -62,16 +75,7 @@ def find_photos(root: Path) -> tuple[Path, list[str], Path | None] | None:
 
 def _colmap_masks(image_dir: Path, names: list[str], mask_dir: Path, out: Path) -> None:
     """COLMAP reads the mask of `a.jpg` from `a.jpg.png` (0 = no features there): write ours so."""
-    for name in names:
-        src = find_with_stem(mask_dir, Path(name).stem) or find_with_stem(mask_dir, name)
-        if src is None:
-            raise InputError(f"photo {name} has no mask (masks/ holds masks for some photos only)", mask_dir)
-        m = to_mask(read_image(src))
-        w, h = image_size(image_dir / name)  # the header only: the photo itself is COLMAP's to read
-        if m.shape != (h, w):
-            raise InputError(f"mask is {m.shape[1]}x{m.shape[0]} but its photo is {w}x{h}", src)
-        r = max(2, round(0.01 * max(m.shape)))  # a margin: corners on the object's outline are good features
-        grown = binary_dilation(m > 0.5, np.ones((2 * r + 1, 2 * r + 1), bool))
+    for name, grown in _grown_masks(image_dir, names, mask_dir).items():
         write_png(out / f"{name}.png", grown.astype(np.float32))
 
 
@@ -126,76 +130,78 @@ def pose_photos(
     matcher: str,
     max_image_size: int,
     threads: int = 1,
+    focal: float | None = None,
 ) -> SfmResult:
     """Run structure-from-motion on `names` in `image_dir`; the largest model goes to `out/`
-    (written whole or not at all). `matcher`: auto, exhaustive or sequential; SIFT runs on the
-    photos downscaled to `max_image_size`. Raises InputError when too few photos register."""
+    (written whole or not at all). `matcher`: auto (learned matching up to SPARSE_UP_TO photos,
+    or where SIFT registers too few of up to LEARNED_FALLBACK_UP_TO; SIFT otherwise), learned,
+    exhaustive or sequential (SIFT); SIFT runs on the photos downscaled to `max_image_size`.
+    `focal`: the focal length in pixels of the full photos where it is known (kept fixed).
+    Raises InputError when too few photos pose together; leaves out, with one line each, the
+    photos that do not join the others."""
     t0 = time.perf_counter()
     n = len(names)
     if matcher not in MATCHERS:
         raise InputError(f"unknown matcher {matcher!r}: use {', '.join(MATCHERS)}")
-    if matcher == "auto":
-        matcher = "exhaustive" if n <= EXHAUSTIVE_UP_TO else "sequential"
+    chosen = matcher == "auto"
+    if chosen:
+        matcher = "learned" if n <= SPARSE_UP_TO else "exhaustive" if n <= EXHAUSTIVE_UP_TO else "sequential"
+    try:
+        best = _map_photos(image_dir, names, mask_dir, out, matcher, max_image_size, threads, focal)
+    except InputError:
+        if not chosen or matcher == "learned" or n > LEARNED_FALLBACK_UP_TO:
+            raise
+        log(f"sfm: SIFT registered too few of {n} photos; trying the learned matcher")
+        matcher = "learned"
+        best = _map_photos(image_dir, names, mask_dir, out, matcher, max_image_size, threads, focal)
+    seconds = time.perf_counter() - t0
+    log(f"sfm: {best} of {n} photos registered ({matcher} matching) in {seconds:.1f} s")
+    return SfmResult(out, best, n, seconds, matcher)
+
+
+def _map_photos(
+    image_dir: Path,
+    names: list[str],
+    mask_dir: Path | None,
+    out: Path,
+    matcher: str,
+    max_image_size: int,
+    threads: int,
+    focal: float | None,
+) -> int:
+    """Features, matches and incremental mapping in a staging folder; the largest model moves to
+    `out`. Returns how many photos it registered."""
+    n = len(names)
     tmp = out.parent / f".{out.name}.tmp"
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     try:
         db = tmp / "database.db"
         reader = pycolmap.ImageReaderOptions()
-        reader.camera_model = "SIMPLE_RADIAL"
-        if mask_dir is not None:
-            _colmap_masks(image_dir, names, mask_dir, tmp / "masks")
-            reader.mask_path = str(tmp / "masks")
+        # a few photos pin down no lens distortion: a pinhole there
+        reader.camera_model = "SIMPLE_PINHOLE" if matcher == "learned" else "SIMPLE_RADIAL"
         # photos of one size: one camera (better intrinsics, and views that undistort to one size)
         sizes = {image_size(image_dir / name) for name in names}
         camera_mode = pycolmap.CameraMode.SINGLE if len(sizes) == 1 else pycolmap.CameraMode.AUTO
-        extraction = pycolmap.FeatureExtractionOptions()
-        extraction.num_threads = threads
-        extraction.max_image_size = max_image_size
-        extraction.sift.max_num_features = MAX_FEATURES
-        matching = pycolmap.FeatureMatchingOptions()
-        matching.num_threads = threads
+        if focal is not None:
+            if len(sizes) != 1:
+                raise InputError("--focal/--fov needs photos of one size", image_dir)
+            (w, h) = next(iter(sizes))
+            reader.camera_params = f"{focal},{w / 2},{h / 2}" + (",0" if reader.camera_model == "SIMPLE_RADIAL" else "")
         with _colmap_quiet():
-            with _watched("sfm: features", n, lambda: _count(db, "SELECT COUNT(*) FROM keypoints")):
-                pycolmap.extract_features(
-                    db,
-                    image_dir,
-                    image_names=names,
-                    camera_mode=camera_mode,
-                    reader_options=reader,
-                    extraction_options=extraction,
-                    device=pycolmap.Device.cpu,
-                )
-            if matcher == "exhaustive":
-                pairs = n * (n - 1) // 2
-                with _watched(f"sfm: match ({matcher})", pairs, lambda: _count(db, "SELECT COUNT(*) FROM matches")):
-                    pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
+            if matcher == "learned":
+                verified = _learned_database(db, image_dir, names, mask_dir, reader, camera_mode)
             else:
-                pairing = pycolmap.SequentialPairingOptions()
-                pairing.overlap = SEQUENTIAL_OVERLAP
-                pairing.loop_detection = False  # needs a vocabulary tree: nothing downloads
-                pairs = sum(min(SEQUENTIAL_OVERLAP, n - 1 - i) for i in range(n))
-                with _watched(f"sfm: match ({matcher})", pairs, lambda: _count(db, "SELECT COUNT(*) FROM matches")):
-                    pycolmap.match_sequential(
-                        db, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu
-                    )
-            mapping = pycolmap.IncrementalPipelineOptions()
-            mapping.num_threads = threads
-            mapping.random_seed = 0
-            registered = [0]
-            with progress_bar("sfm: register", n) as prog:
-
-                def next_image() -> None:
-                    registered[0] += 1
-                    prog.update(BAR, completed=min(registered[0] + 1, n))
-
-                models = pycolmap.incremental_mapping(
-                    db, image_dir, tmp / "sparse", options=mapping, next_image_callback=next_image
+                _sift_database(
+                    db, image_dir, names, mask_dir, tmp, reader, camera_mode, matcher, max_image_size, threads
                 )
-                best = max(models.values(), key=lambda r: r.num_reg_images(), default=None)
-                prog.update(BAR, completed=best.num_reg_images() if best is not None else 0)
+                verified = {}
+            best = _incremental_mapping(db, image_dir, tmp, n, threads, sparse=matcher == "learned", focal=focal)
         n_reg = best.num_reg_images() if best is not None else 0
-        if n_reg < max(MIN_REGISTERED, MIN_SHARE * n):
+        if matcher == "learned":
+            _check_sparse(best, names, verified, image_dir)
+            n_reg = best.num_reg_images() if best is not None else 0
+        elif n_reg < max(MIN_REGISTERED, MIN_SHARE * n):
             hint = (
                 HOW_TO_POSE
                 if n < FEW_PHOTOS
@@ -214,9 +220,222 @@ def pose_photos(
         model.rename(out)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    seconds = time.perf_counter() - t0
-    log(f"sfm: {n_reg} of {n} photos registered ({matcher} matching) in {seconds:.1f} s")
-    return SfmResult(out, n_reg, n, seconds, matcher)
+    return n_reg
+
+
+def _sift_database(
+    db: Path,
+    image_dir: Path,
+    names: list[str],
+    mask_dir: Path | None,
+    tmp: Path,
+    reader,
+    camera_mode,
+    matcher: str,
+    max_image_size: int,
+    threads: int,
+) -> None:
+    """SIFT features (inside the masks) and exhaustive or sequential matching into `db`."""
+    n = len(names)
+    if mask_dir is not None:
+        _colmap_masks(image_dir, names, mask_dir, tmp / "masks")
+        reader.mask_path = str(tmp / "masks")
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = threads
+    extraction.max_image_size = max_image_size
+    extraction.sift.max_num_features = MAX_FEATURES
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = threads
+    with _watched("sfm: features", n, lambda: _count(db, "SELECT COUNT(*) FROM keypoints")):
+        pycolmap.extract_features(
+            db,
+            image_dir,
+            image_names=names,
+            camera_mode=camera_mode,
+            reader_options=reader,
+            extraction_options=extraction,
+            device=pycolmap.Device.cpu,
+        )
+    if matcher == "exhaustive":
+        pairs = n * (n - 1) // 2
+        with _watched(f"sfm: match ({matcher})", pairs, lambda: _count(db, "SELECT COUNT(*) FROM matches")):
+            pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
+    else:
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = SEQUENTIAL_OVERLAP
+        pairing.loop_detection = False  # needs a vocabulary tree: nothing downloads
+        pairs = sum(min(SEQUENTIAL_OVERLAP, n - 1 - i) for i in range(n))
+        with _watched(f"sfm: match ({matcher})", pairs, lambda: _count(db, "SELECT COUNT(*) FROM matches")):
+            pycolmap.match_sequential(
+                db, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu
+            )
+
+
+def _learned_database(
+    db: Path, image_dir: Path, names: list[str], mask_dir: Path | None, reader, camera_mode
+) -> dict[tuple[str, str], int]:
+    """Learned features (`learned_matching`, inside the grown masks) of every photo and matches of
+    every pair into `db`, then COLMAP's two-view geometric verification. Returns each pair's
+    verified matches."""
+    from . import learned_matching as lm
+
+    pycolmap.Database.open(db).close()  # created empty: import_images fills it
+    pycolmap.import_images(db, image_dir, camera_mode, image_names=names, options=reader)
+    masks = _grown_masks(image_dir, names, mask_dir) if mask_dir is not None else {}
+    features = []
+    with progress_bar("sfm: learned features", len(names)) as prog:
+        for name in names:
+            features.append(lm.extract(_rgb(read_image(image_dir / name)), masks.get(name)))
+            prog.advance(BAR)
+    database = pycolmap.Database.open(db)
+    try:
+        ids = {im.name: im.image_id for im in database.read_all_images()}
+        for name, f in zip(names, features, strict=True):
+            database.write_keypoints(ids[name], f.keypoints)
+        pairs = list(itertools.combinations(range(len(names)), 2))
+        with progress_bar("sfm: learned matching", len(pairs)) as prog:
+            for i, j in pairs:
+                database.write_matches(ids[names[i]], ids[names[j]], lm.match(features[i], features[j]))
+                prog.advance(BAR)
+    finally:
+        database.close()
+    pair_file = db.parent / "pairs.txt"
+    pair_file.write_text("".join(f"{names[i]} {names[j]}\n" for i, j in pairs))
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.max_num_trials = 20000
+    verification.ransac.min_inlier_ratio = 0.1
+    verification.min_num_inliers = MIN_PAIR_INLIERS
+    pycolmap.verify_matches(db, pair_file, options=verification)
+    database = pycolmap.Database.open(db)
+    try:
+        verified = {}
+        for i, j in pairs:
+            geometry = database.read_two_view_geometry(ids[names[i]], ids[names[j]])
+            verified[(names[i], names[j])] = len(geometry.inlier_matches)
+        # a pair far weaker than both photos' strongest is most likely wrong matches on like-looking
+        # parts (a far side), which verification can still fit: it is dropped
+        strongest = {name: max(m for pair, m in verified.items() if name in pair) for name in names}
+        for (a, b), m in verified.items():
+            if 0 < m < WEAK_PAIR_SHARE * min(strongest[a], strongest[b]):
+                database.delete_two_view_geometry(ids[a], ids[b])
+                verified[(a, b)] = 0
+    finally:
+        database.close()
+    return verified
+
+
+def _incremental_mapping(db: Path, image_dir: Path, tmp: Path, n: int, threads: int, sparse: bool, focal):
+    """pycolmap's incremental mapper on `db`; the model with the most registered photos, or None.
+    `sparse`: a few photos far apart, which COLMAP's defaults (made for dense captures) refuse."""
+    mapping = pycolmap.IncrementalPipelineOptions()
+    mapping.num_threads = threads
+    mapping.random_seed = 0
+    if sparse:
+        mapping.min_num_matches = MIN_PAIR_INLIERS
+        mapping.mapper.init_min_num_inliers = 2 * MIN_PAIR_INLIERS
+        mapping.mapper.init_min_tri_angle = 4.0
+        mapping.mapper.abs_pose_min_num_inliers = MIN_PAIR_INLIERS
+        mapping.mapper.abs_pose_min_inlier_ratio = 0.1
+        mapping.init_num_trials = 400
+    if focal is not None:
+        mapping.ba_refine_focal_length = False
+    registered = [0]
+    with progress_bar("sfm: register", n) as prog:
+
+        def next_image() -> None:
+            registered[0] += 1
+            prog.update(BAR, completed=min(registered[0] + 1, n))
+
+        models = pycolmap.incremental_mapping(
+            db, image_dir, tmp / "sparse", options=mapping, next_image_callback=next_image
+        )
+        best = max(models.values(), key=lambda r: r.num_reg_images(), default=None)
+        prog.update(BAR, completed=best.num_reg_images() if best is not None else 0)
+    return best
+
+
+def _check_sparse(best, names: list[str], verified: dict[tuple[str, str], int], image_dir: Path) -> None:
+    """A few photos posed with learned matches: at least MIN_REGISTERED together, else one error
+    that names the pairs and what they share; each photo left out gets one line."""
+    posed = {im.name for im in best.images.values() if im.has_pose} if best is not None else set()
+    if best is not None and posed:
+        # a photo registered on far fewer 3D points than the others is most likely placed by wrong
+        # matches (a photo from the far side): it is left out
+        points = {im.image_id: im.num_points3D for im in best.images.values() if im.has_pose}
+        typical = float(np.median(list(points.values())))
+        for image_id, count in points.items():
+            if count < WEAK_IMAGE_SHARE * typical:
+                posed.discard(best.images[image_id].name)
+                best.deregister_frame(best.images[image_id].frame_id)
+    left = [name for name in names if name not in posed]
+    share = sorted(verified.items(), key=lambda kv: -kv[1])
+    if len(posed) < MIN_REGISTERED:
+        groups = _groups(names, verified)
+        shown = ", ".join(f"{a} + {b} {m}" for (a, b), m in share[:6])
+        if len(groups) > 1:
+            across = max(
+                ((m, a, b) for (a, b), m in verified.items() if not any(a in g and b in g for g in groups)),
+                default=(0, names[0], names[-1]),
+            )
+            where = (
+                "they fall into groups that share nothing: "
+                + " | ".join(", ".join(g) for g in groups)
+                + f"; one more photo between {across[1]} and {across[2]} would join them"
+            )
+        else:
+            where = (
+                f"one more photo between {share[0][0][0]} and {share[0][0][1]} would give the mapper more to start from"
+            )
+        raise InputError(
+            f"no {MIN_REGISTERED} of the {len(names)} photos pose together: they share too little (verified matches "
+            f"per pair: {shown}; a pair needs about {2 * MIN_PAIR_INLIERS}); {where} (neighbours up to about 45 "
+            "degrees apart pose)",
+            image_dir,
+        )
+    for name in left:
+        best_pair = max(
+            ((m, other) for (a, b), m in verified.items() for other in (a, b) if name in (a, b) and other != name),
+            default=(0, "none"),
+        )
+        log(
+            f"sfm: {name} left out: it shares too little with the posed photos (at most {best_pair[0]} verified "
+            f"matches, with {best_pair[1]}); one more photo between it and {best_pair[1]} would join it"
+        )
+
+
+def _groups(names: list[str], verified: dict[tuple[str, str], int]) -> list[list[str]]:
+    """The photos joined by pairs with at least 2 * MIN_PAIR_INLIERS verified matches, as groups."""
+    group = {name: {name} for name in names}
+    for (a, b), m in verified.items():
+        if m >= 2 * MIN_PAIR_INLIERS and group[a] is not group[b]:
+            joined = group[a] | group[b]
+            for name in joined:
+                group[name] = joined
+    unique = {id(g): sorted(g) for g in group.values()}
+    return sorted(unique.values(), key=lambda g: (-len(g), g))
+
+
+def _grown_masks(image_dir: Path, names: list[str], mask_dir: Path) -> dict[str, np.ndarray]:
+    """Each photo's mask [H, W] (bool), grown by a margin: corners on the outline are good features."""
+    out = {}
+    for name in names:
+        src = find_with_stem(mask_dir, Path(name).stem) or find_with_stem(mask_dir, name)
+        if src is None:
+            raise InputError(f"photo {name} has no mask (masks/ holds masks for some photos only)", mask_dir)
+        m = to_mask(read_image(src))
+        w, h = image_size(image_dir / name)
+        if m.shape != (h, w):
+            raise InputError(f"mask is {m.shape[1]}x{m.shape[0]} but its photo is {w}x{h}", src)
+        r = max(2, round(0.01 * max(m.shape)))
+        out[name] = binary_dilation(m > 0.5, np.ones((2 * r + 1, 2 * r + 1), bool))
+    return out
+
+
+def _rgb(image: np.ndarray) -> np.ndarray:
+    """[H, W, C] -> [H, W, 3]: grey repeated, alpha dropped."""
+    if image.ndim == 2:
+        image = image[..., None]
+    return np.repeat(image, 3, axis=2) if image.shape[2] == 1 else image[..., :3]
 
 
 __all__ = ["MATCHERS", "SfmResult", "find_photos", "pose_photos", "HOW_TO_POSE"]

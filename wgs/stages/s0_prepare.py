@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import math
 from pathlib import Path
 
 from ..config import PrepareConfig
 from ..errors import InputError
 from ..io import atomic_write_bytes, atomic_write_json, read_json
-from ..io.images import write_png
+from ..io.images import image_size, write_png
 from ..progress import log
 from ..scene.dataset import load_prepared
 from ..scene.formats import detect_format
@@ -26,6 +27,7 @@ from ..scene.sfm import find_photos, pose_photos
 from ..scene.types import RawScene
 from ..segment.accept import judged_automatic_masks
 from ..segment.automask import mask_sheet
+from ..shape.scores import HULL_CUT_LIMIT, leave_one_out, mean_scores
 from ..shape.symmetry import mirror_check
 from ..threads import thread_count
 from ..workspace import StageRun, Workspace
@@ -42,13 +44,23 @@ def mask_folder(cfg: PrepareConfig) -> Path | None:
 
 
 def _photos_digest(image_dir: Path, names: list[str], mask_dir: Path | None, cfg: PrepareConfig) -> str:
-    h = hashlib.sha256(f"sfm-1:{cfg.matcher}:{cfg.sfm_max_image_size}".encode())
+    h = hashlib.sha256(f"sfm-2:{cfg.matcher}:{cfg.sfm_max_image_size}:{cfg.focal}:{cfg.fov}".encode())
     for folder in (image_dir, mask_dir):
         for p in sorted(folder.iterdir()) if folder is not None else ():
             if p.is_file() and (folder != image_dir or p.name in names):
                 st = p.stat()
                 h.update(f"{p.name}:{st.st_size}:{st.st_mtime_ns}".encode())
     return h.hexdigest()
+
+
+def known_focal(cfg: PrepareConfig, image_dir: Path, names: list[str]) -> float | None:
+    """The photos' focal length in pixels from --focal or --fov (of the first photo's width), or None."""
+    if cfg.focal is not None and cfg.fov is not None:
+        raise InputError("give --focal or --fov, not both")
+    if cfg.fov is not None:
+        width, _ = image_size(image_dir / names[0])
+        return 0.5 * width / math.tan(math.radians(cfg.fov) / 2)
+    return cfg.focal
 
 
 def posed_photos(ws: Workspace, scene_dir: Path, cfg: PrepareConfig) -> Path:
@@ -65,7 +77,16 @@ def posed_photos(ws: Workspace, scene_dir: Path, cfg: PrepareConfig) -> Path:
         return out
     log(f"sfm: posing {len(names)} photos{' inside their masks' if mask_dir else ''} (pycolmap, CPU)")
     with ws.lock():
-        res = pose_photos(image_dir, names, mask_dir, out, cfg.matcher, cfg.sfm_max_image_size, thread_count())
+        res = pose_photos(
+            image_dir,
+            names,
+            mask_dir,
+            out,
+            cfg.matcher,
+            cfg.sfm_max_image_size,
+            thread_count(),
+            known_focal(cfg, image_dir, names),
+        )
         atomic_write_json(
             out / SFM_SUMMARY,
             {
@@ -88,8 +109,10 @@ def run_prepare(ws: Workspace, cfg: PrepareConfig, env: StageEnv, force: bool = 
         posed_photos(ws, scene_dir, cfg) if scene_dir.is_dir() and detect_format(scene_dir) == "photos" else None
     )
     scene = load_scene_for_prepare(scene_dir, cfg.views, cfg.test_every, mask_folder(cfg), sfm_model)
+    learned = False
     if sfm_model is not None:
         s = read_json(sfm_model / SFM_SUMMARY)
+        learned = s["matcher"] == "learned"
         scene.notes.append(
             f"poses by structure-from-motion: {s['registered']} of {s['photos']} photos registered "
             f"({s['matcher']} matching, {s['seconds']:.0f} s); the model is in {sfm_model}"
@@ -105,7 +128,7 @@ def run_prepare(ws: Workspace, cfg: PrepareConfig, env: StageEnv, force: bool = 
         if why:
             log(why)
             run.record["working_size"] = why
-        return import_scene(run, ws, scene_dir, scene, dataclasses.replace(cfg, downscale=k), force)
+        return import_scene(run, ws, scene_dir, scene, dataclasses.replace(cfg, downscale=k), force, learned)
 
     return ws.run_staged("scene", cfg, extra, force, body)
 
@@ -181,6 +204,38 @@ def mask_line(masks: dict, sheet: Path, proposed: Path) -> str:
     }[masks["source"]]
 
 
+def poses_agree_with_masks(scene_dir: Path, photos_dir: Path) -> None:
+    """Photos posed from a few wide-baseline matches can be placed wrongly, and then the visual hull
+    of the other photos' masks leaves out much of a photo's own mask: more than HULL_CUT_LIMIT on
+    average is refused, naming the photos it cuts most (generated object, 4 photos: right poses
+    0.01-0.3 %, wrong ones 20-30 %)."""
+    photos = load_prepared(scene_dir).photos
+    advice = (
+        "the photos are probably too far apart to pose; take photos closer together (neighbours up to about 45 "
+        "degrees apart), or give the cameras"
+    )
+    try:
+        per_photo = leave_one_out(photos, HULL_CHECK_RESOLUTION)
+    except InputError:
+        raise InputError(
+            f"the poses found disagree with the masks: under them the masks share no region: {advice}", photos_dir
+        ) from None
+    cut = mean_scores(per_photo)
+    if cut is None or cut["missed"] <= HULL_CUT_LIMIT:
+        return
+    worst = sorted(per_photo, key=lambda n: -per_photo[n]["missed"])[:2]
+    raise InputError(
+        "the poses found disagree with the masks: the hull of the other photos leaves out "
+        + ", ".join(f"{100 * per_photo[n]['missed']:.0f} % of {n}'s mask" for n in worst)
+        + f" (on average {100 * cut['missed']:.1f} %, at most {100 * HULL_CUT_LIMIT:.0f} % for poses that fit): "
+        + advice,
+        photos_dir,
+    )
+
+
+HULL_CHECK_RESOLUTION = 96  # the pose check's hull grid (voxels a side)
+
+
 def find_mirror_views(scene_dir: Path, cfg: PrepareConfig) -> dict | None:
     """The mirror check on the prepared training views (`shape.symmetry.mirror_check`), in one line;
     None where the masks share no region."""
@@ -211,8 +266,15 @@ def find_mirror_views(scene_dir: Path, cfg: PrepareConfig) -> dict | None:
 
 
 def import_scene(
-    run: StageRun, ws: Workspace, scene_dir: Path, scene: RawScene, cfg: PrepareConfig, force: bool
+    run: StageRun,
+    ws: Workspace,
+    scene_dir: Path,
+    scene: RawScene,
+    cfg: PrepareConfig,
+    force: bool,
+    check_poses: bool = False,
 ) -> str:
+    """`check_poses`: poses from learned matching of a few photos, which the masks then check."""
     held = ((ws.manifest("scene") or {}).get("summary") or {}).get("source")
     if held is not None and Path(held) != scene_dir.resolve() and not force:
         raise InputError(
@@ -227,6 +289,8 @@ def import_scene(
     masks, mask_info, judged = scene_masks(views, cfg, run)
     info = write_prepared(scene, views, masks, mask_info, judged, run.dir)
     log(mask_line(info["masks"], ws.output("scene", "masks_sheet"), ws.output("scene", "masks_proposed")))
+    if check_poses and info["has_masks"] and info["masks"]["source"] != "auto":
+        poses_agree_with_masks(run.dir, scene_dir)
     cropped, n = info["masks"]["training_cropped"], len(info["train_names"])
     if cropped:
         log(

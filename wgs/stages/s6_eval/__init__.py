@@ -12,7 +12,6 @@ import torch
 
 from ... import __version__
 from ...config import EvalConfig
-from ...errors import InputError
 from ...gaussians.splats import load_checkpoint
 from ...gaussians.trainer import render_frame
 from ...io import atomic_write_json
@@ -44,9 +43,10 @@ def run_eval(ws: Workspace, cfg: EvalConfig, env: StageEnv, force: bool = False)
 
 def evaluate(run: StageRun, ws: Workspace, cfg: EvalConfig, device: torch.device, final: str, seed: int) -> str:
     scene = load_prepared(ws.output("scene", "prepared"), load_test_images=True)
+    kind = "test" if scene.test else "training"  # without test views: what the scene itself can show
     if not scene.test:
-        raise InputError("the scene has no test views: nothing to evaluate", ws.stage_dir("scene"))
-    frames = scene.test[: cfg.max_views] if cfg.max_views else scene.test
+        log("eval: no test views: the models' fit at the training photos and the leave-one-out silhouettes")
+    frames = (scene.test[: cfg.max_views] if cfg.max_views else scene.test) or scene.photos  # not mirror views
     try:
         lpips_fn, lpips_note = LPIPS(cfg.lpips_net, cfg.lpips_weights).to(device), None
     except LpipsUnavailable as exc:
@@ -57,7 +57,7 @@ def evaluate(run: StageRun, ws: Workspace, cfg: EvalConfig, device: torch.device
     results: dict[str, Any] = {}
     pers: dict[str, Any] = {}
     gain = repair_gain = None
-    want_gain = cfg.repair_gain and final == "fine" and ws.manifest("finetune") is not None
+    want_gain = cfg.repair_gain and final == "fine" and ws.manifest("finetune") is not None and kind == "test"
     for key, st in (("fine", final), ("coarse", "coarse")):
         if key == "coarse" and final == "coarse":
             results["coarse"] = results["fine"]
@@ -85,7 +85,12 @@ def evaluate(run: StageRun, ws: Workspace, cfg: EvalConfig, device: torch.device
             final_splats = splats  # the turntable renders it again, without a second load
         atomic_write_json(run.path("per_view.json" if key == "fine" else "per_view_coarse.json"), per)
         pers[key] = per
-        results[key] = {**summarise(per), "num_gaussians": int(splats["means"].shape[0]), "num_views": len(frames)}
+        results[key] = {
+            **summarise(per),
+            "num_gaussians": int(splats["means"].shape[0]),
+            "num_views": len(frames),
+            "views": kind,
+        }
         if repair_gain is not None:
             gain = repair_gain.summary()
             atomic_write_json(
@@ -103,7 +108,9 @@ def evaluate(run: StageRun, ws: Workspace, cfg: EvalConfig, device: torch.device
             **{k: b[k] for k in ("budget_s", "train_seconds", "iterations")},
         }
     carved = ws.output("repair", "carved_hull")
-    shape = shape_reference(scene, frames, cfg.hull_resolution, load_grid(carved) if carved.is_file() else None)
+    shape = shape_reference(
+        scene, frames if kind == "test" else [], cfg.hull_resolution, load_grid(carved) if carved.is_file() else None
+    )
     if shape is not None:
         per_view = ("hull_test", "carved_hull_test", "leave_one_out")
         atomic_write_json(run.path("per_view_shape.json"), {k: shape.pop(f"{k}_per_view") for k in per_view})
@@ -157,7 +164,7 @@ def evaluate(run: StageRun, ws: Workspace, cfg: EvalConfig, device: torch.device
     run.record.update(
         {"psnr": res["psnr"], "ssim": res["ssim"], "lpips": res["lpips"], "coarse_psnr": results["coarse"]["psnr"]}
     )
-    return "\n".join(summary_lines(results, shape, gain, len(frames)))
+    return "\n".join(summary_lines(results, shape, gain))
 
 
 def results_record(

@@ -51,7 +51,7 @@ def write_report(
     lines.append(f"| eval | {eval_s:.1f} | {fmt(eval_estimate_s, 1, '')} | {total:.1f} | | | | | |")
     lines += [
         "",
-        f"Quality is measured on {fine.get('num_views')} test views (mean over views; "
+        f"Quality is measured on {views_phrase(fine)} (mean over views; "
         "coarse = G_c, fine = G_f). The estimate is the one printed before training (`wgs.estimate`); "
         "empty where the stage did not run in that `wgs all`.",
         "",
@@ -148,7 +148,7 @@ def write_html(
         if (p := run.path("outlines", name)).is_file():
             outlines.append((f"IoU {iou[name]:.3f}", name, p))
     notes = [
-        f"Quality on {results['fine'].get('num_views')} test views (mean over views); coarse = G_c, "
+        f"Quality on {views_phrase(results['fine'])} (mean over views); coarse = G_c, "
         f"fine = G_f. Evaluation took {eval_s:.0f} s."
     ]
     if results.get("shape") is not None:
@@ -198,12 +198,20 @@ def write_html(
     )
 
 
-def summary_lines(results: dict[str, Any], shape: dict | None, gain: dict | None, n_views: int) -> list[str]:
+def views_phrase(scores: dict[str, Any]) -> str:
+    """'5 test views', or for a scene without test views what its numbers are instead."""
+    n = scores.get("num_views")
+    if scores.get("views") == "training":
+        return f"{n} training views: there are no test views, so this is the fit to the photos, not novel views"
+    return f"{n} test views"
+
+
+def summary_lines(results: dict[str, Any], shape: dict | None, gain: dict | None) -> list[str]:
     """What the stage prints: G_c -> G_f, the baseline, the silhouettes and the repair gain."""
     c, f = results["coarse"], results["fine"]
     lines = [
         f"eval: PSNR {fmt(c['psnr'], 2)} -> {fmt(f['psnr'], 2)} dB, SSIM {fmt(c['ssim'])} -> {fmt(f['ssim'])}, "
-        f"LPIPS {fmt(c['lpips'])} -> {fmt(f['lpips'])} (coarse -> fine, {n_views} test views)"
+        f"LPIPS {fmt(c['lpips'])} -> {fmt(f['lpips'])} (coarse -> fine, {views_phrase(f)})"
     ]
     if results.get("baseline_3dgs") is not None:
         b = results["baseline_3dgs"]

