@@ -107,3 +107,8 @@ def test_poses_that_disagree_with_the_masks_are_refused(finished_workspace, tmp_
     (scene / "sparse" / "frames.txt").write_text("\n".join(frames) + "\n")
     with pytest.raises(InputError, match=f"disagree with the masks.*{moved}"):
         poses_agree_with_masks(scene, tmp_path)
+
+
+def test_fewer_than_three_photos_are_refused_at_once(tmp_path):
+    make_photos(tmp_path / "p", n=2, azimuths=[0, 20])
+    expect_error(tmp_path, ["-w", tmp_path / "ws", "prepare", tmp_path / "p"], "2 photos", "at least 3")

@@ -143,6 +143,8 @@ def pose_photos(
     n = len(names)
     if matcher not in MATCHERS:
         raise InputError(f"unknown matcher {matcher!r}: use {', '.join(MATCHERS)}")
+    if n < MIN_REGISTERED:
+        raise InputError(f"{n} photo{'s' if n != 1 else ''}: posing needs at least {MIN_REGISTERED}", image_dir)
     chosen = matcher == "auto"
     if chosen:
         matcher = "learned" if n <= SPARSE_UP_TO else "exhaustive" if n <= EXHAUSTIVE_UP_TO else "sequential"
@@ -314,7 +316,7 @@ def _learned_database(
             verified[(names[i], names[j])] = len(geometry.inlier_matches)
         # a pair far weaker than both photos' strongest is most likely wrong matches on like-looking
         # parts (a far side), which verification can still fit: it is dropped
-        strongest = {name: max(m for pair, m in verified.items() if name in pair) for name in names}
+        strongest = {name: max((m for pair, m in verified.items() if name in pair), default=0) for name in names}
         for (a, b), m in verified.items():
             if 0 < m < WEAK_PAIR_SHARE * min(strongest[a], strongest[b]):
                 database.delete_two_view_geometry(ids[a], ids[b])
