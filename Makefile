@@ -12,7 +12,7 @@ export NUMBA_CACHE_DIR ?= $(CURDIR)/.numba_cache
 MIRROR ?= $(CURDIR)/../.mirror
 PRIOR_BUDGET_MIN ?= 120
 
-.PHONY: setup demo test bench ablation stress lint clean prior shape-prior
+.PHONY: setup demo test test-cluster bench ablation stress lint clean prior shape-prior
 
 setup: $(VENV)/.installed
 
@@ -39,6 +39,13 @@ demo: $(VENV)/.base examples/scene/transforms_train.json
 
 test: $(VENV)/.installed
 	$(BIN)/python -m pytest -q -n auto --dist worksteal --durations=12 tests
+
+# `wgs batch --executor slurm` on a real one-node Slurm started here (tests/cluster/local_slurm.py;
+# as root it installs Debian's slurmctld, slurmd, slurm-client and munge when absent); then no
+# Slurm or munge process may be left
+test-cluster: $(VENV)/.installed
+	WGS_TEST_CLUSTER=1 $(BIN)/python -m pytest -q -p no:cacheprovider --durations=5 tests/cluster
+	@! pgrep -a 'slurmctld|slurmd|slurmstepd|munged' || (echo "test-cluster: daemons left running" && false)
 
 bench: $(VENV)/.installed
 	$(BIN)/python -m wgs.bench rasterizer --json

@@ -17,6 +17,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "examples"))
 LEGO = ROOT.parent / "shared" / "data" / "lego"
+# tests/cluster starts a real Slurm (root, Debian's packages): `make test-cluster` runs it, `make test` not
+collect_ignore = [] if os.environ.get("WGS_TEST_CLUSTER") == "1" else ["cluster"]
 # a fixed thread count: the tests compare reruns bit for bit, and sums depend on the thread count
 # (wgs otherwise adapts it to other processes' load, see wgs/threads.py); under pytest-xdist
 # (`make test` runs one worker per core) each worker takes one core

@@ -153,5 +153,29 @@ def test_slurm_without_submitit_is_a_clear_error(monkeypatch, scenes, tmp_path):
 
     monkeypatch.setitem(sys.modules, "submitit", None)
     with pytest.raises(b.InputError, match=r"pip install 'wgs\[slurm\]'"):
-        b.run_submitit([SceneTask("cube", str(scenes / "data" / "cube"))], tmp_path, [], b.SlurmOptions())
+        opts = b.SlurmOptions(None, None, 120, 0, 4, None, 32, 90, 3)
+        b.run_submitit([SceneTask("cube", str(scenes / "data" / "cube"))], tmp_path, [], opts)
     assert isinstance(cli.commands["batch"], click.Command)
+
+
+def test_a_slurm_job_hands_back_its_call_once_its_stopping_child_has_exited():
+    """submitit calls SceneJob.checkpoint from its signal handler: it waits for the `wgs` child
+    (which saves and stops on the same signal) and hands back the same call, without the child's
+    pid; `make test-cluster` runs the whole path on a real Slurm."""
+    pytest.importorskip("submitit")
+    import pickle
+    import time
+
+    from wgs.batch import SceneJob, exited
+
+    job = SceneJob()
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(1.5)"])
+    job._started(child.pid)
+    assert not exited(child.pid)
+    t0 = time.monotonic()
+    again = job.checkpoint(SceneTask("cube", "/x"), "/root", ["--seed", "0"], False)
+    assert time.monotonic() - t0 > 1.0 and exited(child.pid)
+    assert child.wait() == 0  # still waitable: its Popen reaps it
+    assert isinstance(again.function, SceneJob) and again.function.child is None
+    assert again.args == (SceneTask("cube", "/x"), "/root", ["--seed", "0"], False)
+    assert pickle.loads(pickle.dumps(job)).child is None

@@ -19,6 +19,7 @@ import statistics
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -119,13 +120,21 @@ def shard_from_env(rank: int | None, world_size: int | None) -> tuple[int, int]:
 
 # ----------------------------------------------------------------------------- one scene
 def run_scene(
-    task: SceneTask, root: str, global_args: list[str], env: dict[str, str] | None = None, rerun: bool = False
+    task: SceneTask,
+    root: str,
+    global_args: list[str],
+    env: dict[str, str] | None = None,
+    rerun: bool = False,
+    resume: bool = False,
+    started: Callable[[int], None] | None = None,
 ) -> dict[str, Any]:
     """`wgs all` on one scene in a child process (a crash or a GPU fault stays there). Writes
     ROOT/<name>/error.txt on failure, ROOT/<name>/batch_done.json on success; a scene finished with
-    the same arguments is skipped unless `rerun`."""
+    the same arguments is skipped unless `rerun`. `resume`: continue a stage that a stopped run
+    saved (`wgs --resume`); `started(pid)` is told the child's process id."""
     ws = Path(root) / task.name
-    args = [*global_args, "-w", str(ws), "all", task.scene, *task.options]
+    again = ["--resume"] if resume and "--resume" not in global_args else []
+    args = [*global_args, *again, "-w", str(ws), "all", task.scene, *task.options]
     key = {"args": [*global_args, "all", task.scene, *task.options]}
     done = ws / DONE
     if not rerun and done.is_file() and _read(done) == key and Workspace(ws).output("eval", "results").is_file():
@@ -134,10 +143,14 @@ def run_scene(
     logs.mkdir(parents=True, exist_ok=True)
     ws.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    with open(logs / f"{task.name}.log", "w", encoding="utf-8") as fh:
-        proc = subprocess.run(
+    # resuming: the log goes on after the stopped run's
+    with open(logs / f"{task.name}.log", "a" if resume else "w", encoding="utf-8") as fh:
+        proc = subprocess.Popen(
             [sys.executable, "-m", "wgs", *args], stdout=fh, stderr=subprocess.STDOUT, env={**os.environ, **(env or {})}
         )
+        if started is not None:
+            started(proc.pid)
+        proc.wait()
     seconds = time.perf_counter() - t0
     if proc.returncode == 0:
         (ws / ERROR).unlink(missing_ok=True)
@@ -227,13 +240,64 @@ def run_local(
 
 @dataclass
 class SlurmOptions:
-    cluster: str | None = None  # None: Slurm when available (submitit's auto); "local"/"debug": no cluster
-    partition: str | None = None
-    time_min: int = 120
-    gpus: int = 0
-    cpus: int = 4
-    mem_gb: int | None = None
-    array_parallelism: int = 32
+    """What `run_submitit` asks of Slurm (the meanings and defaults: `cli.batch.BatchSettings`)."""
+
+    cluster: str | None  # None: Slurm when available (submitit's auto); "local"/"debug": no cluster
+    partition: str | None
+    time_min: int
+    gpus: int
+    cpus: int
+    mem_gb: int | None
+    array_parallelism: int
+    signal_s: int  # Slurm signals a job this many seconds before its time limit
+    requeues: int  # times a job stopped at its time limit is requeued
+
+
+def exited(pid: int) -> bool:
+    """Whether child `pid` has exited (it stays waitable: its Popen reaps it later)."""
+    try:
+        return os.waitid(os.P_PID, pid, os.WEXITED | os.WNOHANG | os.WNOWAIT) is not None
+    except ChildProcessError:  # already reaped
+        return True
+
+
+class SceneJob:
+    """One scene as a Slurm job (submitit): `wgs --resume all`, so that a requeued job continues from
+    what its stopped run saved.
+
+    At a job's time limit (`--signal`, `signal_s` before it) and at preemption Slurm signals every
+    process of the job step: the `wgs` child saves and stops (`resume.STOP_SIGNALS`), and submitit's
+    handler in this process calls `checkpoint`, which waits for the child to exit and hands back the
+    same call; submitit then requeues the job (`scontrol requeue`). A scene that finished is
+    skipped by the requeued job (`run_scene`)."""
+
+    SAVE_WAIT_S = 600.0  # the longest a stopping child is waited for (one iteration and a save)
+    # a child stopped by Slurm's SIGTERM (preemption, scancel): the job waits this long for Slurm to
+    # end it, so that a job being requeued does not report the stop as the scene's result first
+    STOPPED_WAIT_S = 300.0
+
+    def __init__(self) -> None:
+        self.child: int | None = None
+
+    def __call__(self, task: SceneTask, root: str, global_args: list[str], rerun: bool) -> dict[str, Any]:
+        res = run_scene(task, root, global_args, None, rerun, resume=True, started=self._started)
+        if res["status"] == "failed" and (res["error"] or "").startswith("interrupted:"):
+            time.sleep(self.STOPPED_WAIT_S)
+        return res
+
+    def _started(self, pid: int) -> None:
+        self.child = pid
+
+    def checkpoint(self, *args: Any, **kwargs: Any) -> Any:
+        from submitit.helpers import DelayedSubmission
+
+        end = time.monotonic() + self.SAVE_WAIT_S
+        while self.child is not None and not exited(self.child) and time.monotonic() < end:
+            time.sleep(0.2)
+        return DelayedSubmission(SceneJob(), *args, **kwargs)
+
+    def __getstate__(self) -> dict[str, Any]:  # the child's pid means nothing in the requeued job
+        return {"child": None}
 
 
 def run_submitit(
@@ -245,7 +309,7 @@ def run_submitit(
     except ImportError:
         raise InputError("--executor slurm needs submitit: pip install 'wgs[slurm]'") from None
     folder = root / BATCH_DIR / "logs" / "%j"
-    executor = submitit.AutoExecutor(folder=folder, cluster=opts.cluster)
+    executor = submitit.AutoExecutor(folder=folder, cluster=opts.cluster, slurm_max_num_timeout=opts.requeues)
     executor.update_parameters(
         timeout_min=opts.time_min,
         gpus_per_node=opts.gpus or None,
@@ -254,9 +318,10 @@ def run_submitit(
         name="wgs-batch",
         slurm_partition=opts.partition,
         slurm_array_parallelism=opts.array_parallelism,
+        slurm_signal_delay_s=opts.signal_s,
     )
     n = len(tasks)
-    jobs = executor.map_array(run_scene, tasks, [str(root)] * n, [global_args] * n, [None] * n, [rerun] * n)
+    jobs = executor.map_array(SceneJob(), tasks, [str(root)] * n, [global_args] * n, [rerun] * n)
     log(f"batch: submitted {n} job(s) to {executor.cluster} (first id {jobs[0].job_id if jobs else '-'})")
     out = []
     for task, job in zip(tasks, jobs, strict=True):

@@ -5,11 +5,12 @@ generator states, counters) to `WS/.resume/<stage>/<key>.pt` every `every_s` sec
 `wgs --resume ...` loads it and continues; the result is the one of an uninterrupted run with the
 same seed, because the same floating-point operations run in the same order.
 
-A stop signal inside a loop (Ctrl-C's SIGINT, or a scheduler's SIGTERM or SIGUSR1: Slurm sends
-one at a job's time limit or preemption) finishes the current iteration, saves a checkpoint and
-raises `Interrupted`; a second one stops at once (the last periodic checkpoint stays). Outside a
-loop SIGTERM and SIGUSR1 stop at once as Ctrl-C does (`Stopped`). The CLI exits with 128 + the
-signal's number, as the shell expects (130, 143, 138).
+A stop signal inside a loop (Ctrl-C's SIGINT, or a scheduler's SIGTERM, SIGUSR1 or SIGUSR2: Slurm
+sends one at a job's time limit or preemption, SIGUSR2 where submitit asked for it) finishes the
+current iteration, saves a checkpoint and raises `Interrupted`; a second one stops at once (the
+last periodic checkpoint stays). Outside a loop SIGTERM, SIGUSR1 and SIGUSR2 stop at once as Ctrl-C
+does (`Stopped`). The CLI exits with 128 + the signal's number, as the shell expects (130, 143, 138,
+140).
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ class Interrupted(WgsError):
 
 
 class Stopped(KeyboardInterrupt):
-    """SIGTERM or SIGUSR1 outside a resumable loop, or a second stop signal inside one: stop at once."""
+    """SIGTERM, SIGUSR1 or SIGUSR2 outside a resumable loop, or a second stop signal inside one: stop at once."""
 
     def __init__(self, signum: int):
         super().__init__(signal.Signals(signum).name)
@@ -87,7 +88,7 @@ def set_rng_state(state: dict[str, Any]) -> None:
 
 
 # ----------------------------------------------------------------------------- stop signals
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1)
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1, signal.SIGUSR2)
 _requested = threading.Event()
 _received: list[int] = []  # the first stop signal of the current loop
 _installed = False
@@ -102,7 +103,7 @@ def _stop_at_once(signum, frame):  # noqa: ARG001
 
 
 def install_stop_handlers() -> None:
-    """SIGTERM and SIGUSR1 stop like Ctrl-C (`Stopped`), for the rest of the process (the CLI calls
+    """SIGTERM, SIGUSR1 and SIGUSR2 stop like Ctrl-C (`Stopped`), for the rest of the process (the CLI calls
     it; SIGINT keeps Python's KeyboardInterrupt). Outside the main thread this does nothing."""
     global _installed
     if threading.current_thread() is not threading.main_thread():

@@ -48,6 +48,14 @@ class BatchSettings:
     cpus: int = option(4, "slurm: CPUs per scene.", bounds=(1, None))
     mem_gb: int | None = option(None, "slurm: memory per scene (GB).", bounds=(1, None))
     array_parallelism: int = option(32, "slurm: array elements running at once.", bounds=(1, None))
+    signal_s: int = option(
+        90,
+        "slurm: seconds before the time limit at which Slurm signals a job: it saves, stops and is requeued.",
+        bounds=(1, None),
+    )
+    requeues: int = option(
+        3, "slurm: times a job stopped at its time limit is requeued (preemption: always).", bounds=(0, None)
+    )
     cluster: str = option(
         "auto",
         "slurm: submitit's executor (local/debug run without a cluster).",
@@ -59,54 +67,37 @@ class BatchSettings:
 @click.argument("scenes")
 @settings_options(BatchSettings)
 @click.pass_obj
-def batch(
-    obj,
-    scenes,
-    root,
-    executor,
-    jobs,
-    rank,
-    world_size,
-    preset,
-    force,
-    summary_only,
-    partition,
-    time_min,
-    gpus,
-    cpus,
-    mem_gb,
-    array_parallelism,
-    cluster,
-):
+def batch(obj, scenes: str, **settings) -> None:
     """Run `wgs all` on many scenes. SCENES: a text file (a scene folder per line, optional `wgs all`
     options after it) or a quoted glob of scene folders. Exit status 1 when a scene failed."""
+    import dataclasses
     import sys
     import time
 
     from .. import batch as b
 
+    cfg = BatchSettings(**settings)
     tasks = b.read_scene_list(scenes, cli.commands["all"])
-    if preset:
+    if cfg.preset:
         tasks = [
-            t if "--preset" in t.options else b.SceneTask(t.name, t.scene, (*t.options, "--preset", preset))
+            t if "--preset" in t.options else b.SceneTask(t.name, t.scene, (*t.options, "--preset", cfg.preset))
             for t in tasks
         ]
-    root = root.resolve()
+    root = cfg.root.resolve()
     ran: dict = {}
     t0 = time.perf_counter()
-    if not summary_only:
-        r, n = b.shard_from_env(rank, world_size)
+    if not cfg.summary_only:
+        r, n = b.shard_from_env(cfg.rank, cfg.world_size)
         mine = b.shard(tasks, r, n)
         if n > 1:
             log(f"batch: shard {r} of {n}: {len(mine)} of {len(tasks)} scene(s)")
         args = obj.child_args()
-        if executor == "local":
-            out = b.run_local(mine, root, args, jobs, obj.device != "cpu", rerun=force)
+        if cfg.executor == "local":
+            out = b.run_local(mine, root, args, cfg.jobs, obj.device != "cpu", rerun=cfg.force)
         else:
-            opts = b.SlurmOptions(
-                None if cluster == "auto" else cluster, partition, time_min, gpus, cpus, mem_gb, array_parallelism
-            )
-            out = b.run_submitit(mine, root, args, opts, rerun=force)
+            slurm = {f.name: settings[f.name] for f in dataclasses.fields(b.SlurmOptions)}
+            opts = b.SlurmOptions(**{**slurm, "cluster": None if cfg.cluster == "auto" else cfg.cluster})
+            out = b.run_submitit(mine, root, args, opts, rerun=cfg.force)
         ran = {o["name"]: o for o in out}
     summary = b.summarize(root, tasks, ran)
     if ran:
