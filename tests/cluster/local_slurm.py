@@ -71,7 +71,8 @@ NODE = "wgsnode"
 
 class LocalSlurm:
     """Start a one-node cluster in a temporary folder; `stop()` (or leaving the `with` block) ends
-    every daemon it started. `env` is what a Slurm command needs to reach it (SLURM_CONF)."""
+    every daemon it started and removes the folder (kept where WGS_KEEP_SLURM is set). `env` is what
+    a Slurm command needs to reach it (SLURM_CONF)."""
 
     def __init__(self, cpus: int | None = None, mem_mb: int | None = None, kill_wait_s: int = 30):
         ensure_installed()
@@ -221,6 +222,8 @@ class LocalSlurm:
         for pid in self.job_processes():
             with contextlib.suppress(ProcessLookupError, PermissionError):
                 os.kill(pid, signal.SIGKILL)
+        if not os.environ.get("WGS_KEEP_SLURM"):  # set it to read the daemons' logs afterwards
+            shutil.rmtree(self.dir, ignore_errors=True)
 
     def job_ids(self) -> list[str]:
         res = self.run("squeue", "-h", "-o", "%i", check=False)

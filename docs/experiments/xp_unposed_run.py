@@ -1,0 +1,260 @@
+"""`wgs all` on 4 photos without cameras against the same run with their true cameras, both scored
+at the true test cameras: the posed model's world is aligned to the true one by the similarity
+that takes its 4 training camera centres onto the true ones (Umeyama), and each true test camera
+is moved into the model's world by it. The run with true cameras is scored the same way (its own
+world is a normalised copy of the true one), so both numbers come from one scorer.
+
+Scenes: 4 NeRF-Synthetic lego views along a chain about `--step` degrees apart (measuring only;
+its 200 test views) and a generated object (tests/photo_scene.py) at the same spacing, with 12
+views around it as test views. Runs go to `--out` (a cache outside the repository) and are kept:
+a second call scores them again without training.
+
+    python docs/experiments/xp_unposed_run.py [--lego ../shared/data/lego] [--step 45] [--out DIR]
+"""
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from photo_scene import make_photos  # noqa: E402
+from xp_sparse_pose import lego_chain  # noqa: E402
+
+from wgs.gaussians.project import quat_multiply, quat_to_rotmat  # noqa: E402
+from wgs.gaussians.render import rasterize  # noqa: E402
+from wgs.gaussians.splats import activate, load_checkpoint  # noqa: E402
+from wgs.io import read_json  # noqa: E402
+from wgs.io.images import downscale, read_image, split_rgba, write_png  # noqa: E402
+from wgs.scene.convention import c2w_opengl_to_w2c_opencv  # noqa: E402
+from wgs.scene.dataset import Frame, composite, load_prepared  # noqa: E402
+from wgs.scene.pose_error import centers, pose_errors, umeyama  # noqa: E402
+from wgs.stages.s6_eval.scoring import evaluate_model, spread, summarise  # noqa: E402
+from wgs.workspace import Workspace  # noqa: E402
+
+WGS = str(Path(sys.executable).with_name("wgs"))
+
+
+def transforms_json(path: Path, frames: list[tuple[str, np.ndarray]], angle_x: float) -> None:
+    """A NeRF-Synthetic transforms file: (file path without .png, w2c OpenCV) per frame."""
+    flip = np.diag([1.0, -1.0, -1.0, 1.0])  # OpenCV <-> OpenGL camera axes
+    rows = [{"file_path": p, "transform_matrix": (np.linalg.inv(w2c) @ flip).tolist()} for p, w2c in frames]
+    path.write_text(json.dumps({"camera_angle_x": angle_x, "frames": rows}))
+
+
+def lego_scene(lego: Path, step: float, out: Path) -> dict:
+    """`out/unposed` (4 photos on white + masks) and `out/posed` (the same 4 with their cameras,
+    and lego's test views); returns the true cameras {name: (K, w2c, rgba path)} of the tests."""
+    truth = lego_chain(lego, step, out / "unposed")
+    meta = json.loads((lego / "transforms_train.json").read_text())
+    posed = out / "posed"
+    (posed / "train").mkdir(parents=True, exist_ok=True)
+    frames = []
+    for name, w2c in truth.items():  # copies in the cache: wgs refuses paths outside the scene folder
+        shutil.copyfile(lego / "train" / name, posed / "train" / name)
+        frames.append((f"./train/{Path(name).stem}", w2c))
+    transforms_json(posed / "transforms_train.json", frames, meta["camera_angle_x"])
+    test = json.loads((lego / "transforms_test.json").read_text())
+    (posed / "test").mkdir(exist_ok=True)
+    for fr in test["frames"]:
+        name = Path(fr["file_path"]).name + ".png"
+        shutil.copyfile(lego / "test" / name, posed / "test" / name)
+    (posed / "transforms_test.json").write_text(json.dumps(test))
+    f = 400 / (2 * np.tan(test["camera_angle_x"] / 2))
+    K = np.array([[f, 0, 200], [0, f, 200], [0, 0, 1.0]])
+    tests = {
+        Path(fr["file_path"]).name: (K, c2w_opengl_to_w2c_opencv(np.array(fr["transform_matrix"])), None)
+        for fr in test["frames"]
+    }
+    for name in tests:
+        tests[name] = (K, tests[name][1], lego / "test" / f"{name}.png")
+    return {"truth": truth, "tests": tests}
+
+
+def generated_scene(step: float, out: Path) -> dict:
+    """A generated object: 4 photos `step` degrees apart, and 12 test views around it."""
+    azimuths = [step * i for i in range(4)] + [15 + 30 * i for i in range(12)]
+    every = out / "all"
+    cams = make_photos(every, n=len(azimuths), azimuths=azimuths)
+    names = sorted(cams)
+    (out / "posed" / "train").mkdir(parents=True, exist_ok=True)
+    (out / "posed" / "test").mkdir(parents=True, exist_ok=True)
+    truth, tests, frames = {}, {}, {"train": [], "test": []}
+    for i, name in enumerate(names):
+        K, w2c = cams[name]
+        rgb, alpha = read_image(every / "images" / name)[..., :3], read_image(every / "masks" / name)[..., :1]
+        rgba = np.concatenate([rgb, alpha], -1)
+        split = "train" if i < 4 else "test"
+        write_png(out / "posed" / split / name, rgba)
+        frames[split].append((f"./{split}/{Path(name).stem}", w2c))
+        if split == "train":
+            write_png(out / "unposed" / "images" / name, read_image(every / "images" / name)[..., :3])
+            write_png(out / "unposed" / "masks" / name, read_image(every / "masks" / name)[..., 0])
+            truth[name] = w2c
+        else:
+            tests[Path(name).stem] = (K, w2c, out / "posed" / split / name)
+    angle_x = 2 * np.arctan(K[0, 2] / K[0, 0])
+    for split in ("train", "test"):
+        transforms_json(out / "posed" / f"transforms_{split}.json", frames[split], angle_x)
+    return {"truth": truth, "tests": tests}
+
+
+def run_all(scene: Path, ws: Path, extra: list[str]) -> float:
+    """`wgs all` (skipped when its report is there); its wall time in seconds."""
+    timing = ws / "xp_wall_s.txt"
+    if timing.is_file():
+        return float(timing.read_text())
+    t0 = time.perf_counter()
+    subprocess.run([WGS, "all", str(scene), "-w", str(ws), *extra], check=True)
+    seconds = time.perf_counter() - t0
+    timing.write_text(f"{seconds:.1f}")
+    return seconds
+
+
+def aligned_tests(ws: Path, truth: dict[str, np.ndarray], tests: dict) -> tuple[list[Frame], dict]:
+    """The true test cameras moved into the workspace's normalised world, at its working size,
+    with their images; and the training poses' error against the truth."""
+    ws_ = Workspace(ws)
+    scene = load_prepared(ws_.output("scene", "prepared"))
+    # prepare names a view by its split ("train_photo_000.png"): match on the photo's own name
+    own = {f.name: next(k for k in truth if f.name.endswith(k)) for f in scene.photos}
+    est = {own[f.name]: f.viewmat.double().numpy() for f in scene.photos}
+    names = sorted(est)
+    true_w2c = np.stack([truth[n] for n in names])
+    est_w2c = np.stack([est[n] for n in names])
+    s, R, t = umeyama(centers(true_w2c), centers(est_w2c))  # true world -> model world
+    size = scene.photos[0].width
+    frames = []
+    for name, (K, w2c, path) in tests.items():
+        rgb, mask = split_rgba(read_image(path))
+        k = rgb.shape[1] // size
+        rgb, mask = downscale(rgb, mask, k)
+        Rc, tc = w2c[:3, :3], w2c[:3, 3]
+        moved = np.eye(4)
+        moved[:3, :3] = Rc @ R.T
+        moved[:3, 3] = s * tc - Rc @ R.T @ t
+        Kk = K.copy()
+        Kk[:2] /= k
+        frames.append(
+            Frame(
+                torch.tensor(Kk, dtype=torch.float32),
+                torch.tensor(moved, dtype=torch.float32),
+                rgb.shape[1],
+                rgb.shape[0],
+                name=name,
+                image=torch.from_numpy(np.ascontiguousarray(rgb)),
+                mask=torch.from_numpy(np.ascontiguousarray(mask)),
+            )
+        )
+    err = pose_errors(est_w2c, true_w2c)
+    return frames, {
+        "rotation_deg": float(np.median(err["rotation_deg"])),
+        "centre": float(np.median(err["center"])),
+        "norm": scene.norm,
+    }
+
+
+def refined(splats, frame: Frame, bg: torch.Tensor, steps: int) -> Frame:
+    """The test camera moved (6 degrees of freedom, photometric L1, Adam) to where the frozen model
+    fits its photo best, as pose-free methods score novel views. The model's Gaussians move
+    instead of the camera (the rasterizer gives gradients for them): a camera-frame rotation
+    omega and shift tau are the world moved by Rc^T (R (Rc x + tc) + tau - tc)."""
+    means, quats, scales, opac, sh = (t.detach() for t in activate(splats))
+    Rc, tc = frame.viewmat[:3, :3], frame.viewmat[:3, 3]
+    truth = composite(frame.pixels, frame.mask, bg)
+    omega = torch.zeros(3, requires_grad=True)
+    tau = torch.zeros(3, requires_grad=True)
+    opt = torch.optim.Adam([omega, tau], lr=2e-3)
+
+    def quat(w: torch.Tensor) -> torch.Tensor:  # axis-angle -> wxyz, smooth through 0
+        theta = torch.sqrt((w * w).sum() + 1e-12)
+        return torch.cat([torch.cos(theta / 2)[None], 0.5 * torch.sinc(theta / (2 * torch.pi)) * w])
+
+    for _ in range(steps):
+        R = quat_to_rotmat(quat(omega)[None])[0]
+        moved = ((means @ Rc.T + tc) @ R.T + tau - tc) @ Rc
+        q = quat_multiply(quat(Rc.T @ omega).expand_as(quats), quats)
+        rgb, _, _ = rasterize(moved, q, scales, opac, sh, frame.viewmat, frame.K, frame.width, frame.height, bg)
+        loss = (rgb - truth).abs().mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        delta = torch.eye(4)
+        delta[:3, :3] = quat_to_rotmat(quat(omega)[None])[0]
+        delta[:3, 3] = tau
+    return replace(frame, viewmat=delta @ frame.viewmat)
+
+
+def score(ws: Path, frames: list[Frame], norm, stage: str, refine_steps: int = 0) -> dict:
+    splats, _ = load_checkpoint(Workspace(ws).output(stage, "model"), norm, "cpu")
+    bg = torch.ones(3)
+    if refine_steps:
+        frames = [refined(splats, f, bg, refine_steps) for f in frames]
+    per = evaluate_model(splats, frames, torch.device("cpu"), bg, None, desc=f"score {stage}")
+    s = summarise(per)
+    return {"psnr": s["psnr"], "iou": s["silhouette_iou"]}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--lego", type=Path, default=Path("../shared/data/lego"))
+    ap.add_argument("--step", type=float, default=45)
+    cache = Path(os.environ.get("WGS_CACHE", "~/.cache/wgs")).expanduser()
+    ap.add_argument("--out", type=Path, default=cache / "xp_unposed")
+    ap.add_argument("--only", choices=("lego", "generated"), default=None)
+    ap.add_argument("--refine-views", type=int, default=40, help="test views scored after test-pose refinement")
+    ap.add_argument("--refine-steps", type=int, default=60)
+    args = ap.parse_args()
+    scenes = []
+    if args.only in (None, "generated"):
+        scenes.append(("generated", generated_scene, ["--downscale", "1"], []))
+    if args.only in (None, "lego") and (args.lego / "transforms_train.json").is_file():
+        scenes.append(("lego", lambda step, out: lego_scene(args.lego, step, out), ["--downscale", "2"], []))
+    rows = []
+    for label, make, extra, _ in scenes:
+        out = args.out / f"{label}_{args.step:g}"
+        data = make(args.step, out)
+        for kind in ("posed", "unposed"):
+            ws = out / f"ws_{kind}"
+            wall = run_all(out / kind, ws, extra)
+            frames, pose = aligned_tests(ws, data["truth"], data["tests"])
+            rows.append(
+                {
+                    "scene": f"{label}, {args.step:g} deg",
+                    "cameras": "true" if kind == "posed" else "posed by wgs",
+                    "wall_s": wall,
+                    "rotation_deg": pose["rotation_deg"],
+                    "centre": pose["centre"],
+                    "coarse": score(ws, frames, pose["norm"], "coarse"),
+                    "fine": score(ws, frames, pose["norm"], "fine"),
+                    "fine_refined": score(
+                        ws, spread(frames, args.refine_views), pose["norm"], "fine", args.refine_steps
+                    ),
+                    "own_eval": read_json(Workspace(ws).output("eval", "results"))["psnr"],
+                }
+            )
+    print(
+        "| scene | cameras | pose error (deg / % extent) | G_c PSNR | G_f PSNR | G_f IoU | G_f PSNR, test poses "
+        "refined | wgs all (s) | its own eval (dB) |"
+    )
+    print("| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
+    for r in rows:
+        print(
+            f"| {r['scene']} | {r['cameras']} | {r['rotation_deg']:.2f} / {100 * r['centre']:.1f} | "
+            f"{r['coarse']['psnr']:.2f} | {r['fine']['psnr']:.2f} | {r['fine']['iou']:.3f} | "
+            f"{r['fine_refined']['psnr']:.2f} | {r['wall_s']:.0f} | {r['own_eval']:.2f} |"
+        )
+
+
+if __name__ == "__main__":
+    main()
