@@ -45,7 +45,7 @@ test: $(VENV)/.installed
 # Slurm or munge process may be left
 test-cluster: $(VENV)/.installed
 	WGS_TEST_CLUSTER=1 $(BIN)/python -m pytest -q -p no:cacheprovider --durations=5 tests/cluster
-	@! pgrep -a 'slurmctld|slurmd|slurmstepd|munged' || (echo "test-cluster: daemons left running" && false)
+	@for d in slurmctld slurmd slurmstepd munged; do ! pgrep -ax $$d || { echo "test-cluster: $$d left running"; exit 1; }; done
 
 bench: $(VENV)/.installed
 	$(BIN)/python -m wgs.bench rasterizer --json
