@@ -274,6 +274,7 @@ class SceneJob:
     SAVE_WAIT_S = 600.0  # the longest a stopping child is waited for (one iteration and a save)
     # a child stopped by Slurm's SIGTERM (preemption, scancel): the job waits this long for Slurm to
     # end it, so that a job being requeued does not report the stop as the scene's result first
+    # (on Slurm only: submitit's local executor has no one to end it)
     STOPPED_WAIT_S = 300.0
 
     def __init__(self) -> None:
@@ -281,7 +282,8 @@ class SceneJob:
 
     def __call__(self, task: SceneTask, root: str, global_args: list[str], rerun: bool) -> dict[str, Any]:
         res = run_scene(task, root, global_args, None, rerun, resume=True, started=self._started)
-        if res["status"] == "failed" and (res["error"] or "").startswith("interrupted:"):
+        stopped = res["status"] == "failed" and (res["error"] or "").startswith("interrupted:")
+        if stopped and os.environ.get("SUBMITIT_EXECUTOR") == "slurm":
             time.sleep(self.STOPPED_WAIT_S)
         return res
 
