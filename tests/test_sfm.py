@@ -2,6 +2,7 @@
 pose errors after a similarity alignment."""
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -112,11 +113,17 @@ def test_features_only_inside_the_masks(tmp_path):
         pose_photos(image_dir, names, None, tmp_path / "model2", "auto", 1600)
 
 
-def test_prepare_poses_photos_once_then_reuses(photos, tmp_path):
+@pytest.fixture(scope="module")
+def prepared_photos(photos, tmp_path_factory):
+    """`wgs prepare --views 4` on the 20 photos: (workspace, the command's run)."""
+    base = tmp_path_factory.mktemp("prepared_photos")
+    return base / "ws", run_cli(["-w", base / "ws", "prepare", photos[0], "--views", "4"], base)
+
+
+def test_prepare_poses_photos_once_then_reuses(photos, prepared_photos, tmp_path):
     root, _ = photos
     assert detect_format(root) == "photos"
-    ws = tmp_path / "ws"
-    proc = run_cli(["-w", ws, "prepare", root, "--views", "4"], tmp_path)
+    ws, proc = prepared_photos
     assert proc.returncode == 0, proc.stderr
     assert "20 of 20 photos registered" in proc.stderr
     info = json.loads((ws / "scene" / "scene.json").read_text())
@@ -255,3 +262,28 @@ def test_llff_bad_poses(tmp_path, bad, needle):
     }[bad]
     np.save(tmp_path / "s" / "poses_bounds.npy", arr)
     expect_error(tmp_path, ["-w", tmp_path / "ws", "prepare", tmp_path / "s"], "poses_bounds.npy", needle)
+
+
+def test_eval_localises_the_test_cameras_of_photos_it_posed(photos, prepared_photos, tmp_path):
+    """Test photos posed with the training photos carry the pose error of structure-from-motion:
+    eval moves each camera to where the final model fits it best, scores there and says so."""
+    from conftest import TINY
+
+    root, _ = photos
+    (tmp_path / "wgs.toml").write_text(TINY + "localise_steps = 5\n")
+    ws = tmp_path / "ws"
+    shutil.copytree(prepared_photos[0] / "sfm", ws / "sfm")  # the same photos and settings: posed once
+    proc = run_cli(
+        ["--config", tmp_path / "wgs.toml", "-w", ws, "all", root, "--views", "4", "--downscale", "4"],
+        tmp_path,
+        timeout=400,
+    )
+    assert proc.returncode == 0, proc.stderr
+    res = json.loads((ws / "6_eval" / "results.json").read_text())
+    moved = res["test_cameras_localised"]
+    assert moved["steps"] == 5 and moved["median_rotation_deg"] > 0 and res["views"] == "test"
+    cams = json.loads((ws / "6_eval" / "test_cameras.json").read_text())
+    assert set(cams["rotation_deg"]) == set(json.loads((ws / "6_eval" / "per_view.json").read_text())["psnr"])
+    assert "photos already posed, reused" in proc.stderr
+    assert "test cameras localised on the fine model (5 steps each)" in proc.stderr
+    assert "their cameras localised on the model" in proc.stdout + proc.stderr

@@ -290,6 +290,12 @@ class EvalConfig(LpipsWeightsConfig):
     # the visual hull's grid (voxels along its box's side) whose silhouettes are scored at the test
     # views and, leaving each training view out in turn, at the training views
     hull_resolution: int = TrainConfig.hull_resolution
+    localise_steps: int = option(
+        60,
+        "Photos posed by wgs: move each test camera this many steps to where the final model fits its photo best, "
+        "and score there, as pose-free methods do (0: score at the posed cameras).",
+        bounds=(0, None),
+    )
     turntable_frames: int = 48  # a GIF of the final model on an orbit fitted to the training cameras; 0: none
 
 

@@ -56,6 +56,9 @@ HEADROOM = 3.0
 CALIBRATION_MAX_AGE_S = 3600.0
 # stage time / modelled work, measured on whole runs (`wgs all` on lego at 200 px and ethiopianHead
 # at 307 px, 2026-11-27; docs/speed.md "Working size, estimate and budget")
+# one step of eval's test-camera localisation (render, backward, the Gaussians moved) in rendered
+# views: 2.4 measured at 200x200 with 20k Gaussians (a random blob, tests/test_localise.py's)
+LOCALISE_STEP_VIEWS = 2.5
 FACTOR = {"coarse": 1.0, "mask_data": 0.8, "finetune": 1.75, "repair": 0.9, "fine": 0.93, "eval": 0.9}
 # the training stages of a scene without masks: the background is reconstructed too, with about
 # 4x the Gaussians (the fox at 213x379, 2026-11-27)
@@ -229,6 +232,7 @@ class SceneFacts:
     n_test: int
     full_pixels: int = 0
     has_masks: bool = True
+    posed_by_wgs: bool = False  # photos posed by prepare: eval localises the test cameras
 
     @property
     def pixels(self) -> int:
@@ -307,6 +311,7 @@ def stage_seconds(cal: Calibration, cfgs: dict[str, Any], facts: SceneFacts) -> 
         n_eval * cal.view_s(facts.pixels)
         + gain * ensemble * per_render
         + ev.turntable_frames * cal.view_s(facts.pixels) / 2
+        + (n_eval * ev.localise_steps * LOCALISE_STEP_VIEWS * cal.view_s(facts.pixels) if facts.posed_by_wgs else 0)
     )
     out["baseline"] = fixed["baseline"] + sum(out[t] for t in BASELINE_BUDGET)
     return {k: round(v, 1) for k, v in out.items()}
@@ -457,7 +462,14 @@ class RunTiming:
         configs to run with (`cfgs` with the budget's plan)."""
         res = info["resolution"]
         w, h = res if isinstance(res[0], int) else res[0]
-        facts = SceneFacts(w, h, len(info["train_names"]), len(info["test_names"]), has_masks=info["has_masks"])
+        facts = SceneFacts(
+            w,
+            h,
+            len(info["train_names"]),
+            len(info["test_names"]),
+            has_masks=info["has_masks"],
+            posed_by_wgs=info.get("format") == "photos",
+        )
         held = ws.run_record()
         cfgs = dict(self.cfgs)
         plan: dict[str, Any] | None = None

@@ -19,7 +19,6 @@ import shutil
 import subprocess
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -30,13 +29,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from photo_scene import make_photos  # noqa: E402
 from xp_sparse_pose import lego_chain  # noqa: E402
 
-from wgs.gaussians.project import quat_multiply, quat_to_rotmat  # noqa: E402
-from wgs.gaussians.render import rasterize  # noqa: E402
-from wgs.gaussians.splats import activate, load_checkpoint  # noqa: E402
+from wgs.gaussians.localise import localise  # noqa: E402
+from wgs.gaussians.splats import load_checkpoint  # noqa: E402
 from wgs.io import read_json  # noqa: E402
 from wgs.io.images import downscale, read_image, split_rgba, write_png  # noqa: E402
 from wgs.scene.convention import c2w_opengl_to_w2c_opencv  # noqa: E402
-from wgs.scene.dataset import Frame, composite, load_prepared  # noqa: E402
+from wgs.scene.dataset import Frame, load_prepared  # noqa: E402
 from wgs.scene.pose_error import centers, pose_errors, umeyama  # noqa: E402
 from wgs.stages.s6_eval.scoring import evaluate_model, spread, summarise  # noqa: E402
 from wgs.workspace import Workspace  # noqa: E402
@@ -163,43 +161,11 @@ def aligned_tests(ws: Path, truth: dict[str, np.ndarray], tests: dict) -> tuple[
     }
 
 
-def refined(splats, frame: Frame, bg: torch.Tensor, steps: int) -> Frame:
-    """The test camera moved (6 degrees of freedom, photometric L1, Adam) to where the frozen model
-    fits its photo best, as pose-free methods score novel views. The model's Gaussians move
-    instead of the camera (the rasterizer gives gradients for them): a camera-frame rotation
-    omega and shift tau are the world moved by Rc^T (R (Rc x + tc) + tau - tc)."""
-    means, quats, scales, opac, sh = (t.detach() for t in activate(splats))
-    Rc, tc = frame.viewmat[:3, :3], frame.viewmat[:3, 3]
-    truth = composite(frame.pixels, frame.mask, bg)
-    omega = torch.zeros(3, requires_grad=True)
-    tau = torch.zeros(3, requires_grad=True)
-    opt = torch.optim.Adam([omega, tau], lr=2e-3)
-
-    def quat(w: torch.Tensor) -> torch.Tensor:  # axis-angle -> wxyz, smooth through 0
-        theta = torch.sqrt((w * w).sum() + 1e-12)
-        return torch.cat([torch.cos(theta / 2)[None], 0.5 * torch.sinc(theta / (2 * torch.pi)) * w])
-
-    for _ in range(steps):
-        R = quat_to_rotmat(quat(omega)[None])[0]
-        moved = ((means @ Rc.T + tc) @ R.T + tau - tc) @ Rc
-        q = quat_multiply(quat(Rc.T @ omega).expand_as(quats), quats)
-        rgb, _, _ = rasterize(moved, q, scales, opac, sh, frame.viewmat, frame.K, frame.width, frame.height, bg)
-        loss = (rgb - truth).abs().mean()
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-    with torch.no_grad():
-        delta = torch.eye(4)
-        delta[:3, :3] = quat_to_rotmat(quat(omega)[None])[0]
-        delta[:3, 3] = tau
-    return replace(frame, viewmat=delta @ frame.viewmat)
-
-
 def score(ws: Path, frames: list[Frame], norm, stage: str, refine_steps: int = 0) -> dict:
     splats, _ = load_checkpoint(Workspace(ws).output(stage, "model"), norm, "cpu")
     bg = torch.ones(3)
     if refine_steps:
-        frames = [refined(splats, f, bg, refine_steps) for f in frames]
+        frames = [localise(splats, f, bg, refine_steps)[0] for f in frames]
     per = evaluate_model(splats, frames, torch.device("cpu"), bg, None, desc=f"score {stage}")
     s = summarise(per)
     return {"psnr": s["psnr"], "iou": s["silhouette_iou"]}

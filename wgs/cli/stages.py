@@ -73,7 +73,7 @@ STAGE_OPTIONS: dict[str, tuple[str, ...]] = {
         "shape_smooth",
     ),
     "fine": ("iterations", "rounds", "lpips_weights", "start"),
-    "eval": ("lpips_net", "lpips_weights", "max_views", "repair_gain_views"),
+    "eval": ("lpips_net", "lpips_weights", "max_views", "repair_gain_views", "localise_steps"),
     "baseline": (),
 }
 STAGE_HELP: dict[str, str] = {

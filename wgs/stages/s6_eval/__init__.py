@@ -25,7 +25,7 @@ from ...workspace import StageRun, Workspace
 from .. import StageEnv
 from ..shared import background_for, coarse_members, stage_times
 from .report import curve_points, summary_lines, write_html, write_report
-from .scoring import METRICS_DOC, RepairGain, evaluate_model, spread, summarise
+from .scoring import METRICS_DOC, RepairGain, evaluate_model, localised, spread, summarise
 from .shape import masks_note, shape_reference
 
 
@@ -54,6 +54,9 @@ def evaluate(run: StageRun, ws: Workspace, cfg: EvalConfig, device: torch.device
         log(f"eval: {exc}")
     bg = background_for(scene)
     t0 = time.perf_counter()
+    # test cameras posed by wgs with the training photos carry its pose error: localised on the final model
+    localise_steps = cfg.localise_steps if kind == "test" and scene.info.get("format") == "photos" else 0
+    cameras: dict[str, Any] | None = None
     results: dict[str, Any] = {}
     pers: dict[str, Any] = {}
     gain = repair_gain = None
@@ -68,6 +71,14 @@ def evaluate(run: StageRun, ws: Workspace, cfg: EvalConfig, device: torch.device
             splats, repair_gain = members[0], RepairGain(ws, members, device, bg, seed, names)
         else:
             splats, _ = load_checkpoint(ws.output(st, "model"), scene.norm, device)
+        if key == "fine" and localise_steps:  # first: G_c and the baseline are scored at the same cameras
+            frames, cameras = localised(splats, frames, bg, localise_steps)
+            atomic_write_json(run.path("test_cameras.json"), cameras)
+            log(
+                f"eval: {len(frames)} test cameras localised on the {final} model ({localise_steps} steps each): "
+                f"median move {cameras['median_rotation_deg']:.2f} deg and {100 * cameras['median_shift']:.1f} % "
+                "of the camera's distance; the scores are taken there"
+            )
         out = run.path("renders", "x").parent if key == "fine" else None
         outlines = run.path("outlines", "x").parent if key == "fine" else None
         per = evaluate_model(
@@ -90,6 +101,8 @@ def evaluate(run: StageRun, ws: Workspace, cfg: EvalConfig, device: torch.device
             "num_gaussians": int(splats["means"].shape[0]),
             "num_views": len(frames),
             "views": kind,
+            "test_cameras_localised": cameras
+            and {k: v for k, v in cameras.items() if k.startswith(("steps", "median"))},
         }
         if repair_gain is not None:
             gain = repair_gain.summary()

@@ -203,6 +203,8 @@ def views_phrase(scores: dict[str, Any]) -> str:
     n = scores.get("num_views")
     if scores.get("views") == "training":
         return f"{n} training views: there are no test views, so this is the fit to the photos, not novel views"
+    if scores.get("test_cameras_localised"):
+        return f"{n} test views, their cameras localised on the model"
     return f"{n} test views"
 
 

@@ -10,6 +10,7 @@ from typing import Any
 
 import torch
 
+from ...gaussians.localise import localise
 from ...gaussians.trainer import render_frame
 from ...io.images import write_png
 from ...metrics import psnr, ssim
@@ -71,6 +72,28 @@ def evaluate_model(
                 on_view(f, rgb, ref)
             prog.update(BAR, completed=i + 1)
     return {k: v for k, v in per.items() if v}
+
+
+def localised(splats, frames: list[Frame], bg: torch.Tensor, steps: int) -> tuple[list[Frame], dict[str, Any]]:
+    """The test frames with each camera localised on the frozen `splats` (`gaussians.localise`), and
+    how far they moved: per view and the median rotation (degrees) and centre shift (as a fraction
+    of the camera's distance from the world's centre)."""
+    moved, degrees, shifts = [], {}, {}
+    with progress_bar(f"eval: localising {len(frames)} test cameras", len(frames)) as prog:
+        for i, f in enumerate(frames):
+            g, delta = localise(splats, f, bg, steps)
+            cos = ((torch.trace(delta[:3, :3]) - 1) / 2).clamp(-1, 1)
+            degrees[f.name] = float(torch.rad2deg(torch.arccos(cos)))
+            shifts[f.name] = float((g.center - f.center).norm() / f.center.norm().clamp_min(1e-9))
+            moved.append(g)
+            prog.update(BAR, completed=i + 1)
+    return moved, {
+        "steps": steps,
+        "median_rotation_deg": statistics.median(degrees.values()),
+        "median_shift": statistics.median(shifts.values()),
+        "rotation_deg": degrees,
+        "shift": shifts,
+    }
 
 
 def spread(frames: list[Frame], k: int) -> list[Frame]:
