@@ -11,6 +11,7 @@ from wgs.config import GPU_MAX_SIZE, STAGES, load_config_file, resolve, time_box
 from wgs.errors import InputError
 from wgs.estimate import (
     CALIBRATION_MAX_AGE_S,
+    EXPECTED_PLATEAU,
     MIN_SIZE,
     Calibration,
     RunTiming,
@@ -19,7 +20,9 @@ from wgs.estimate import (
     cached_calibration,
     calibrate,
     choose_downscale,
+    expected_iterations,
     parse_duration,
+    pilots_s,
     stage_seconds,
 )
 from wgs.scene.prepare import downscale_for
@@ -60,14 +63,28 @@ def test_calibration_cached_for_an_hour(tmp_path, monkeypatch):
 def test_stage_seconds_grow_with_size_and_iterations():
     small = stage_seconds(CAL, configs(), SceneFacts(128, 128, 4, 8))
     large = stage_seconds(CAL, configs(), SceneFacts(256, 256, 4, 8))
-    longer = stage_seconds(CAL, configs(coarse={"iterations": 3000}), SceneFacts(128, 128, 4, 8))
+    every = stage_seconds(CAL, configs(coarse={"stop": "iterations"}), SceneFacts(128, 128, 4, 8))
+    longer = stage_seconds(CAL, configs(coarse={"iterations": 3000, "stop": "iterations"}), SceneFacts(128, 128, 4, 8))
     assert set(small) == set(STAGES)
     for t in ("coarse", "mask_data", "fine", "repair", "eval"):
         assert large[t] > small[t]
-    assert longer["coarse"] > 1.8 * (small["coarse"] - 25 * CAL.d_step_s)
+    assert longer["coarse"] > 1.8 * (every["coarse"] - 25 * CAL.d_step_s)
     assert longer["fine"] == small["fine"]
     fast = stage_seconds(CAL, configs("fast"), SceneFacts(128, 128, 4, 8))
     assert sum(fast.values()) < sum(small.values()) / 3
+
+
+def test_the_held_out_rule_is_modelled_as_its_margin_times_the_expected_plateau_plus_its_pilots():
+    cfg = configs()["coarse"]
+    assert cfg.stop == "held-out"
+    assert expected_iterations(cfg) == min(cfg.iterations, round(cfg.stop_margin * EXPECTED_PLATEAU))
+    assert expected_iterations(dataclasses.replace(cfg, stop="iterations")) == cfg.iterations
+    assert expected_iterations(dataclasses.replace(cfg, max_seconds=60.0)) == cfg.iterations  # the budget decides
+    facts = SceneFacts(128, 128, 4, 8)
+    assert pilots_s(CAL, cfg, facts, 1) > 0 == pilots_s(CAL, dataclasses.replace(cfg, stop="iterations"), facts, 1)
+    # twice the iterations: the stop (3 x 400) is below both, and more of it in the schedule's half-size share
+    longer = stage_seconds(CAL, configs(coarse={"iterations": 3000}), facts)
+    assert 0.5 < longer["coarse"] / stage_seconds(CAL, configs(), facts)["coarse"] < 1
 
 
 def test_max_seconds_caps_a_stage():

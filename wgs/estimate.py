@@ -39,6 +39,7 @@ from .config import (
     time_boxed,
 )
 from .errors import InputError
+from .gaussians.stopping import StopParams
 from .io import atomic_write_json
 from .progress import log
 from .scene.prepare import downscale_for
@@ -239,11 +240,35 @@ class SceneFacts:
         return self.width * self.height
 
 
+# Where the held-out stopping rule's pilots stop gaining, for the estimate made before they run
+# (lego, 4 views at 200x200: 400, python -m wgs all ... --downscale 2, 2026-11-28)
+EXPECTED_PLATEAU = 400
+
+
+def expected_iterations(cfg: TrainConfig) -> int:
+    """The iterations a loop is expected to run: all of them, or under the held-out stopping rule
+    (`gaussians.stopping`) its margin times the expected plateau."""
+    if not isinstance(cfg, StopParams) or cfg.stop != "held-out" or cfg.max_seconds:
+        return cfg.iterations
+    return min(cfg.iterations, max(round(cfg.stop_margin * EXPECTED_PLATEAU), cfg.stop_min_iterations))
+
+
+def pilots_s(cal: Calibration, cfg: CoarseConfig, facts: SceneFacts, workers: int) -> float:
+    """The held-out rule's pilots: one per photo at half size, each until `stop_patience` past
+    the expected plateau; 0 where the rule is off."""
+    if not isinstance(cfg, StopParams) or cfg.stop != "held-out" or cfg.max_seconds:
+        return 0.0
+    length = min(cfg.iterations, EXPECTED_PLATEAU + cfg.stop_patience)
+    share = workers / SIDE_BY_SIDE_THROUGHPUT if workers > 1 else 1
+    return math.ceil(facts.n_train / workers) * length * cal.view_s(facts.pixels / 4) * share
+
+
 def _loop_s(cal: Calibration, cfg: TrainConfig, pixels: float, renders: float = 1.0) -> float:
-    """One training loop's modelled seconds: its iterations at full and half size (`half_size_until`)."""
-    u = cfg.half_size_until
-    per = u * cal.view_s(pixels / 4) + (1 - u) * cal.view_s(pixels)
-    return cfg.iterations * per * renders
+    """One training loop's modelled seconds: its expected iterations, those in the first
+    `half_size_until` of the schedule at half size."""
+    ends = expected_iterations(cfg)
+    half = min(ends, cfg.half_size_until * cfg.iterations)
+    return (half * cal.view_s(pixels / 4) + (ends - half) * cal.view_s(pixels)) * renders
 
 
 def loops(cal: Calibration, cfgs: dict[str, Any], facts: SceneFacts) -> dict[str, tuple[int, float, float]]:
@@ -286,6 +311,12 @@ def stage_seconds(cal: Calibration, cfgs: dict[str, Any], facts: SceneFacts) -> 
         if cfg.max_seconds:
             loop, factor = min(loop * factor, cfg.max_seconds), 1.0
         out[table] = fixed[table] + count * loop * factor
+    from .stages.s1_coarse import side_by_side
+
+    coarse = cfgs["coarse"]
+    out["coarse"] += FACTOR["coarse"] * pilots_s(
+        cal, coarse, facts, side_by_side(coarse, torch.device(cal.device), facts.pixels // 4)
+    )
     ft, ev = cfgs["finetune"], cfgs["eval"]
     d_pixels = facts.pixels / 4**ft.levels if ft.domain == "wavelet" else facts.pixels
     d_steps = ft.prior_steps if ft.prior != "none" else ft.d_steps

@@ -48,7 +48,7 @@ def prepare(obj: RunOptions, scene: Path, force, preset, **options) -> None:
 
 # the options each stage's command offers, in the order its help lists them, and what it does
 STAGE_OPTIONS: dict[str, tuple[str, ...]] = {
-    "coarse": ("iterations", "max_seconds", "sh_degree", "ensemble"),
+    "coarse": ("iterations", "max_seconds", "sh_degree", "ensemble", "stop"),
     "mask_data": ("strategy", "iterations", "n_regions", "coverage"),
     "finetune": (
         "domain",

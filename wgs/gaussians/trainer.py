@@ -42,6 +42,9 @@ class TrainConfig(DensifyParams):
     `wgs.config`); densification fields and defaults come from `strategy.DensifyParams`."""
 
     iterations: int = option(2000, "Training iterations.")
+    # the loop ends at this iteration (None: at `iterations`); the schedules (learning rate,
+    # densification, half size, SH degree) still span `iterations`: a run stopped where it stopped gaining
+    end_iteration: int | None = None
     max_seconds: float | None = option(None, "Stop training after this many seconds.")
     sh_degree: int = option(2, "Spherical-harmonics degree.", bounds=(0, 3))
     sh_increase_every: int = 500
@@ -100,6 +103,7 @@ class Probe:
     every_s: float
     every_iterations: int = 0
     max_share: float = 0.1
+    stop: Callable[[list[dict[str, float]]], bool] | None = None  # after a probe: True ends the loop
 
 
 @dataclass
@@ -257,11 +261,12 @@ def train_gaussians(
             out["strategy"] = {k: (None if v is None else v.cpu()) for k, v in state.items()}
         return out
 
-    with progress_bar(desc, cfg.iterations) as prog, deferred_stop():
+    last = min(cfg.end_iteration or cfg.iterations, cfg.iterations)
+    with progress_bar(desc, last) as prog, deferred_stop():
         prog.update(BAR, completed=it)
         if probe is not None and not curve:
             measure()
-        for it in range(it + 1, (it if finished else cfg.iterations) + 1):  # noqa: B020 - resumes the count
+        for it in range(it + 1, (it if finished else last) + 1):  # noqa: B020 - resumes the count
             adapt_threads()
             prev_sched = sched
             sched = it
@@ -330,7 +335,7 @@ def train_gaussians(
             losses.append(loss.item())
             if on_step is not None:
                 on_step(it, {k: v.detach() for k, v in params.items()})
-            if it % cfg.log_every == 0 or it == cfg.iterations:
+            if it % cfg.log_every == 0 or it == last:
                 rate = it / max(time.perf_counter() - t0, 1e-9)
                 recent = losses[-cfg.log_every :]
                 prog.update(
@@ -339,13 +344,14 @@ def train_gaussians(
                     status=f"loss {sum(recent) / len(recent):.4f}  "
                     f"{params['means'].shape[0]} gaussians  {rate:.1f} it/s",
                 )
-            finished = it == cfg.iterations or bool(cfg.max_seconds and time.perf_counter() - t0 > cfg.max_seconds)
+            finished = it == last or bool(cfg.max_seconds and time.perf_counter() - t0 > cfg.max_seconds)
             if probe is not None and (
                 finished
                 or time.perf_counter() - t0 - curve[-1]["seconds"] >= probe_every_s
                 or 0 < probe.every_iterations <= it - curve[-1]["iteration"]
             ):
                 measure()
+                finished = finished or bool(probe.stop and probe.stop(curve))
             if checkpoint is not None and (finished or checkpoint.due()):
                 checkpoint.save(snapshot())
             check_interrupt(desc, it, checkpoint, snapshot)

@@ -5,20 +5,23 @@ repaired renders the repair stage averages with G_c's."""
 from __future__ import annotations
 
 import contextlib
+import dataclasses
+import math
 
 import torch
 
 from ..config import CoarseConfig
 from ..curves import test_probe, write_curve
 from ..gaussians.splats import VIEWER_SH_DEGREE, Splats, export_ply, save_checkpoint, to_world
-from ..gaussians.trainer import TrainResult, render_frame, train_gaussians
+from ..gaussians.stopping import Curve, mean_curve, plateau_iteration, smoothed, still_gaining
+from ..gaussians.trainer import Probe, TrainResult, render_frame, train_gaussians
 from ..io import atomic_write_json
 from ..io.exr import write_subbands
 from ..io.images import write_png
 from ..metrics import psnr
 from ..progress import log, progress_bar
 from ..resume import Checkpointer
-from ..scene.dataset import PreparedScene, composite, load_prepared
+from ..scene.dataset import PreparedScene, composite, halved, load_prepared
 from ..threads import configured_count, map_in_processes
 from ..workspace import StageRun, Workspace
 from . import StageEnv
@@ -68,6 +71,83 @@ def train_model(
     return res, names
 
 
+def train_pilot(ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: int, held_out: str) -> Curve:
+    """One pilot of the stopping rule: the coarse model at half size without the photo `held_out`
+    (its visual hull from the other photos' masks), its PSNR at that photo every `cfg.stop_every`
+    iterations until it stops gaining (`gaussians.stopping`). Module level so that a spawned
+    process can run it."""
+    scene = load_prepared(ws.output("scene", "prepared"))
+    fold = dataclasses.replace(scene, train=[f for f in scene.train if f.name != held_out])
+    bg = background_for(scene)
+    target = halved(next(f for f in scene.train if f.name == held_out))
+    ref = composite(target.pixels, target.mask, bg)
+
+    def stopped(curve: list[dict[str, float]]) -> bool:
+        return not still_gaining(
+            [(int(p["iteration"]), p["psnr"]) for p in curve], cfg.stop_tolerance_db, cfg.stop_patience
+        )
+
+    probe = Probe(
+        lambda splats: {"psnr": psnr(render_frame(splats, target, device, bg)[0], ref)},
+        every_s=math.inf,
+        every_iterations=cfg.stop_every,
+        stop=stopped,
+    )
+    torch.manual_seed(seed)
+    res = train_gaussians(
+        initial_splats(fold, cfg, seed),
+        fold.train,
+        dataclasses.replace(cfg, half_size_until=1.0),
+        device,
+        extent=1.0,
+        desc=f"coarse pilot without {held_out}",
+        seed=seed,
+        has_masks=scene.has_masks,
+        probe=probe,
+    )
+    return [(int(p["iteration"]), p["psnr"]) for p in res.curve]
+
+
+PILOT_MIN_PHOTOS = 3  # a pilot trains on the others: at least 2 of them
+
+
+def held_out_stop(
+    run: StageRun, ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: int, scene: PreparedScene
+) -> dict | None:
+    """Where the coarse models stop: pilots that each hold out one photo (`train_pilot`, side by
+    side) and their mean curve's plateau (`gaussians.stopping`); None where the rule is off, a
+    time budget sets the length, or the scene has too few photos. Saved, so that a resumed stage
+    stops where it meant to."""
+    photos = [f.name for f in scene.colour_views]
+    if cfg.stop != "held-out" or cfg.max_seconds or len(photos) < PILOT_MIN_PHOTOS:
+        return None
+    saved = run.checkpointer("stop")
+    found = saved.load()
+    if found is not None:
+        log("coarse: the pilots ran before the interruption: their stop is kept")
+        return found
+    workers = side_by_side(cfg, device, scene.train[0].width * scene.train[0].height // 4)
+    jobs = [(ws, cfg, device, seed, name) for name in photos]
+    curves: dict[str, Curve] = {}
+    with progress_bar("coarse pilots", len(jobs)) as bar:
+        for i, curve in map_in_processes(train_pilot, jobs, workers):
+            curves[photos[i]] = curve
+            bar.update(bar.task_ids[0], advance=1, status=f"without {photos[i]}: {curve[-1][0]} iterations")
+    mean = smoothed(mean_curve(list(curves.values())), cfg.refine_every)
+    plateau = plateau_iteration(mean, cfg.stop_tolerance_db)
+    record = {
+        "rule": "held-out",
+        "plateau": plateau,
+        "stop_at": min(max(round(cfg.stop_margin * plateau), cfg.stop_min_iterations), cfg.iterations),
+        "held_out_psnr": dict(mean)[plateau],
+        "best_psnr": max(s for _, s in mean),
+        "pilot_iterations": {k: c[-1][0] for k, c in curves.items()},
+        "mean_curve": mean,
+    }
+    saved.save(record)
+    return record
+
+
 # A spawned process takes about 5 s to start (torch, numba's cached kernels): worth it from about
 # a lego member's quarter (1500 iterations x 200 x 200 px = 6e7 pixel-iterations, 48 s here).
 SIDE_BY_SIDE_MIN_WORK = 1.5e7
@@ -85,9 +165,19 @@ def side_by_side(cfg: CoarseConfig, device: torch.device, pixels: int) -> int:
 def train_coarse(run: StageRun, ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: int) -> str:
     scene = load_prepared(ws.output("scene", "prepared"))
     workers = side_by_side(cfg, device, scene.train[0].width * scene.train[0].height)
+    stop = held_out_stop(run, ws, cfg, device, seed, scene)
+    if stop is not None:
+        cfg = dataclasses.replace(cfg, end_iteration=stop["stop_at"])
+        log(
+            f"coarse: stops at iteration {stop['stop_at']} of {cfg.iterations}, {cfg.stop_margin:g} x "
+            f"{stop['plateau']}, where the held-out PSNR of {len(stop['pilot_iterations'])} pilots (each photo "
+            f"held out in turn, half size) came within {cfg.stop_tolerance_db} dB of its best "
+            f"({stop['held_out_psnr']:.2f} of {stop['best_psnr']:.2f} dB)"
+        )
+    ends = cfg.end_iteration or cfg.iterations
     log(
         f"coarse: {cfg.ensemble} model(s) from seeds {seed}..{seed + cfg.ensemble - 1}, {len(scene.train)} views, "
-        f"{cfg.iterations} iterations on {device}" + (f", {workers} side by side" if workers > 1 else "")
+        f"{ends} iterations on {device}" + (f", {workers} side by side" if workers > 1 else "")
     )
     jobs = [
         (
@@ -134,6 +224,7 @@ def train_coarse(run: StageRun, ws: Workspace, cfg: CoarseConfig, device: torch.
             "ensemble": cfg.ensemble,
             "member_seconds": member_s,
             "side_by_side": workers,
+            "stopping": stop,
         }
     )
     return (

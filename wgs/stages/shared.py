@@ -68,8 +68,9 @@ def subbands_hwc(img: torch.Tensor) -> dict[str, np.ndarray]:
 
 
 def stage_times(ws) -> list[dict[str, Any]]:
-    """Wall time, cumulative wall time, peak memory and the run's estimate (`Workspace.run_record`,
-    None where it made none) of each method stage that ran, in order."""
+    """Wall time, cumulative wall time, peak memory, the run's estimate (`Workspace.run_record`,
+    None where it made none), and the iterations and where the stopping rule ended them, of each
+    method stage that ran, in order."""
     rows, cum = [], 0.0
     estimate = ws.run_record().get("estimate") or {}
     for st in METHOD:
@@ -84,6 +85,8 @@ def stage_times(ws) -> list[dict[str, Any]]:
                 "cumulative_s": round(cum, 2),
                 "peak_memory_mb": m.get("peak_memory_mb"),
                 "estimate_s": estimate.get(TABLE_OF[st]),
+                "iterations": m.get("iterations"),
+                "stopping": m.get("stopping"),  # where the held-out rule stopped it (None: all its iterations)
             }
         )
     return rows

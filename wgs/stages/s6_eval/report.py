@@ -56,6 +56,16 @@ def write_report(
         "empty where the stage did not run in that `wgs all`.",
         "",
     ]
+    for r in times:
+        if r.get("stopping"):
+            st = r["stopping"]
+            lines += [
+                f"{r['stage']} stopped at iteration {st['stop_at']}: the held-out PSNR of "
+                f"{len(st['pilot_iterations'])} pilots (each photo held out in turn, half size) reached its plateau "
+                f"at iteration {st['plateau']} ({st['held_out_psnr']:.2f} dB, best {st['best_psnr']:.2f} dB), and "
+                "the models train a margin times that.",
+                "",
+            ]
     if shape is not None:
         lines += [shape_line(coarse, fine, shape) + ".", SILHOUETTE_DOC[0].upper() + SILHOUETTE_DOC[1:] + ".", ""]
     if masks_note:

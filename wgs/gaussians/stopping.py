@@ -1,0 +1,75 @@
+"""Where a training run stops gaining, from a held-out score measured during it.
+
+A sparse-view model overfits its few photos: its novel views get better for a few hundred
+iterations and then worse (the report's test probe peaks at iteration 250 of 1500 on an
+all-around capture). A real capture has no test views, so the evidence comes from the photos:
+pilots that each hold one training photo out and score the model there while it trains. Their
+mean curve says where the scene stopped gaining; the full run stops there.
+"""
+
+from __future__ import annotations
+
+import statistics
+from dataclasses import dataclass
+
+from ..fields import option
+
+Curve = list[tuple[int, float]]  # (iteration, held-out score in dB), iterations increasing
+
+
+@dataclass
+class StopParams:
+    """The held-out stopping rule's settings: the one place their defaults live (the training
+    stages' configs inherit these fields)."""
+
+    stop: str = option(
+        "held-out",
+        "held-out: pilots that each hold one photo out (half size) choose where the models stop gaining; "
+        "iterations: train all the iterations.",
+        choices=("held-out", "iterations"),
+    )
+    stop_every: int = 25  # a pilot scores its held-out photo every so many iterations
+    stop_tolerance_db: float = 0.1  # a score within this of the best counts as the best
+    stop_patience: int = 250  # a pilot ends after this many iterations without a better score
+    stop_min_iterations: int = 100  # the full run trains at least this many iterations
+    # the full run trains this many times the pilots' plateau: a photo held out 90 degrees from the
+    # others stops gaining before the views between the photos do (lego, 4 photos: the pilots'
+    # plateau at 400, the test views' gain ends near 1000; README, "Where training stops")
+    stop_margin: float = 3.0
+
+
+def plateau_iteration(curve: Curve, tolerance_db: float) -> int:
+    """The first iteration whose score is within `tolerance_db` of the curve's best: where the
+    gain ends (later iterations add less than the tolerance, or lose)."""
+    best = max(s for _, s in curve)
+    return next(it for it, s in curve if s >= best - tolerance_db)
+
+
+def smoothed(curve: Curve, window: int) -> Curve:
+    """Each score replaced by the mean of those in the `window` iterations up to it (densification
+    every `refine_every` iterations dips the score for a few probes)."""
+    return [(it, statistics.fmean(s for i, s in curve if it - window < i <= it)) for it, _ in curve]
+
+
+def still_gaining(curve: Curve, tolerance_db: float, patience: int) -> bool:
+    """Whether the curve beat its best by more than `tolerance_db` within its last `patience`
+    iterations (always True before it is `patience` long)."""
+    last = curve[-1][0]
+    if last < patience:
+        return True
+    best_before = max((s for it, s in curve if it <= last - patience), default=float("-inf"))
+    return any(s > best_before + tolerance_db for it, s in curve if it > last - patience)
+
+
+def mean_curve(curves: list[Curve]) -> Curve:
+    """The pilots' mean curve at their common probe iterations; a pilot that ended earlier (it had
+    stopped gaining) counts with its last score after its end."""
+    its = sorted({it for c in curves for it, _ in c})
+
+    def at(c: Curve, it: int) -> float:
+        return next((s for i, s in reversed(c) if i <= it), c[0][1])
+
+    return [(it, statistics.fmean(at(c, it) for c in curves)) for it in its]
+
+
+__all__ = ["Curve", "StopParams", "mean_curve", "plateau_iteration", "smoothed", "still_gaining"]
