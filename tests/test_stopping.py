@@ -108,3 +108,15 @@ def test_the_report_says_where_the_coarse_stage_stopped(finished_workspace):
     m = json.loads((base / "ws/1_coarse/manifest.json").read_text())
     report = " ".join((base / "ws/6_eval/report.md").read_text().split())
     assert f"coarse stopped at iteration {m['stopping']['stop_at']}: the held-out PSNR of 4 pilots" in report
+
+
+def test_at_most_stop_pilots_pilots_spread_over_the_photos(tiny, tmp_path):
+    scene, base = tiny
+    cfg = coarse_cfg(base, "two.toml", "stop_pilots = 2\n")
+    ws = tmp_path / "ws"
+    subprocess.run(wgs_cmd(ws, cfg, "prepare", str(scene)), check=True, capture_output=True)
+    proc = subprocess.run(wgs_cmd(ws, cfg, "coarse", quiet=False), capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    photos = json.loads((ws / "scene/scene.json").read_text())["train_names"]
+    held_out = json.loads((ws / "1_coarse/manifest.json").read_text())["stopping"]["pilot_iterations"]
+    assert list(held_out) == [photos[0], photos[2]]

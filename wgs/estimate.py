@@ -254,13 +254,13 @@ def expected_iterations(cfg: TrainConfig) -> int:
 
 
 def pilots_s(cal: Calibration, cfg: CoarseConfig, facts: SceneFacts, workers: int) -> float:
-    """The held-out rule's pilots: one per photo at half size, each until `stop_patience` past
-    the expected plateau; 0 where the rule is off."""
+    """The held-out rule's pilots: one per photo (at most `stop_pilots`) at half size, each until
+    `stop_patience` past the expected plateau; 0 where the rule is off."""
     if not isinstance(cfg, StopParams) or cfg.stop != "held-out" or cfg.max_seconds:
         return 0.0
     length = min(cfg.iterations, EXPECTED_PLATEAU + cfg.stop_patience)
     share = workers / SIDE_BY_SIDE_THROUGHPUT if workers > 1 else 1
-    return math.ceil(facts.n_train / workers) * length * cal.view_s(facts.pixels / 4) * share
+    return math.ceil(min(facts.n_train, cfg.stop_pilots) / workers) * length * cal.view_s(facts.pixels / 4) * share
 
 
 def _loop_s(cal: Calibration, cfg: TrainConfig, pixels: float, renders: float = 1.0) -> float:
@@ -314,8 +314,9 @@ def stage_seconds(cal: Calibration, cfgs: dict[str, Any], facts: SceneFacts) -> 
     from .stages.s1_coarse import side_by_side
 
     coarse = cfgs["coarse"]
+    pilots = dataclasses.replace(coarse, ensemble=min(facts.n_train, coarse.stop_pilots))
     out["coarse"] += FACTOR["coarse"] * pilots_s(
-        cal, coarse, facts, side_by_side(coarse, torch.device(cal.device), facts.pixels // 4)
+        cal, coarse, facts, side_by_side(pilots, torch.device(cal.device), facts.pixels // 4)
     )
     ft, ev = cfgs["finetune"], cfgs["eval"]
     d_pixels = facts.pixels / 4**ft.levels if ft.domain == "wavelet" else facts.pixels

@@ -32,6 +32,7 @@ class StopParams:
     stop_tolerance_db: float = 0.1  # a score within this of the best counts as the best
     stop_patience: int = 250  # a pilot ends after this many iterations without a better score
     stop_min_iterations: int = 100  # the full run trains at least this many iterations
+    stop_pilots: int = 4  # at most this many pilots, their held-out photos spread over the photos' order
     # the full run trains this many times the pilots' plateau: a photo held out 90 degrees from the
     # others stops gaining before the views between the photos do (lego, 4 photos: the pilots'
     # plateau at 400, the test views' gain ends near 1000; README, "Where training stops")

@@ -121,19 +121,22 @@ def held_out_stop(
     photos = [f.name for f in scene.colour_views]
     if cfg.stop != "held-out" or cfg.max_seconds or len(photos) < PILOT_MIN_PHOTOS:
         return None
+    k = min(len(photos), cfg.stop_pilots)
+    photos = [photos[i * len(photos) // k] for i in range(k)]
     saved = run.checkpointer("stop")
     found = saved.load()
     if found is not None:
         log("coarse: the pilots ran before the interruption: their stop is kept")
         return found
-    workers = side_by_side(cfg, device, scene.train[0].width * scene.train[0].height // 4)
+    pixels = scene.train[0].width * scene.train[0].height // 4
+    workers = side_by_side(dataclasses.replace(cfg, ensemble=len(photos)), device, pixels)
     jobs = [(ws, cfg, device, seed, name) for name in photos]
     curves: dict[str, Curve] = {}
     with progress_bar("coarse pilots", len(jobs)) as bar:
         for i, curve in map_in_processes(train_pilot, jobs, workers):
             curves[photos[i]] = curve
             bar.update(bar.task_ids[0], advance=1, status=f"without {photos[i]}: {curve[-1][0]} iterations")
-    mean = smoothed(mean_curve(list(curves.values())), cfg.refine_every)
+    mean = smoothed(mean_curve([curves[p] for p in photos]), cfg.refine_every)  # in one order: the same sums
     plateau = plateau_iteration(mean, cfg.stop_tolerance_db)
     record = {
         "rule": "held-out",
@@ -141,7 +144,7 @@ def held_out_stop(
         "stop_at": min(max(round(cfg.stop_margin * plateau), cfg.stop_min_iterations), cfg.iterations),
         "held_out_psnr": dict(mean)[plateau],
         "best_psnr": max(s for _, s in mean),
-        "pilot_iterations": {k: c[-1][0] for k, c in curves.items()},
+        "pilot_iterations": {p: curves[p][-1][0] for p in photos},
         "mean_curve": mean,
     }
     saved.save(record)
