@@ -61,20 +61,24 @@ def coarse_cfg(base, name: str, extra: str):
     return path
 
 
+def prepared_and_coarse(ws, cfg, scene) -> tuple[str, dict, list[str]]:
+    """`wgs prepare` and `wgs coarse`: what coarse said (one line), its manifest, the photos' names."""
+    subprocess.run(wgs_cmd(ws, cfg, "prepare", str(scene)), check=True, capture_output=True)
+    proc = subprocess.run(wgs_cmd(ws, cfg, "coarse", quiet=False), capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    photos = json.loads((ws / "scene/scene.json").read_text())["train_names"]
+    return " ".join(proc.stderr.split()), json.loads((ws / "1_coarse/manifest.json").read_text()), photos
+
+
 def test_coarse_stops_where_the_pilots_stopped_gaining_says_why_and_resumes_to_the_same_model(tiny, tmp_path):
     scene, base = tiny
     # a tolerance no score misses: the pilots' plateau is iteration 0, so the models stop at stop_min_iterations
     cfg = coarse_cfg(base, "stop.toml", "stop_tolerance_db = 100.0\nstop_min_iterations = 50\n")
     ref = tmp_path / "ref"
-    subprocess.run(wgs_cmd(ref, cfg, "prepare", str(scene)), check=True, capture_output=True)
-    proc = subprocess.run(wgs_cmd(ref, cfg, "coarse", quiet=False), capture_output=True, text=True)
-    assert proc.returncode == 0, proc.stderr
-    said = " ".join(proc.stderr.split())
+    said, m, photos = prepared_and_coarse(ref, cfg, scene)
     assert "coarse: stops at iteration 50 of 120, 3 x 0, where the held-out PSNR of 4 pilots" in said, said
-    m = json.loads((ref / "1_coarse/manifest.json").read_text())
     assert m["iterations"] == 50 and m["stopping"]["stop_at"] == 50
-    photos = json.loads((ref / "scene/scene.json").read_text())["train_names"]
-    assert set(m["stopping"]["pilot_iterations"]) == set(photos)
+    assert list(m["stopping"]["pilot_iterations"]) == photos
     assert all(40 <= n <= 120 for n in m["stopping"]["pilot_iterations"].values())  # each ran out its patience
 
     # killed in G_c's loop, after the pilots saved where to stop: the resumed run stops there too
@@ -94,12 +98,8 @@ def test_coarse_stops_where_the_pilots_stopped_gaining_says_why_and_resumes_to_t
 
 def test_stop_iterations_trains_every_iteration_and_runs_no_pilot(tiny, tmp_path):
     scene, base = tiny
-    cfg = coarse_cfg(base, "all.toml", 'stop = "iterations"\n')
-    ws = tmp_path / "ws"
-    subprocess.run(wgs_cmd(ws, cfg, "prepare", str(scene)), check=True, capture_output=True)
-    proc = subprocess.run(wgs_cmd(ws, cfg, "coarse", quiet=False), capture_output=True, text=True)
-    assert proc.returncode == 0 and "stops at iteration" not in proc.stderr
-    m = json.loads((ws / "1_coarse/manifest.json").read_text())
+    said, m, _ = prepared_and_coarse(tmp_path / "ws", coarse_cfg(base, "all.toml", 'stop = "iterations"\n'), scene)
+    assert "stops at iteration" not in said
     assert m["iterations"] == 120 and m["stopping"] is None
 
 
@@ -112,11 +112,5 @@ def test_the_report_says_where_the_coarse_stage_stopped(finished_workspace):
 
 def test_at_most_stop_pilots_pilots_spread_over_the_photos(tiny, tmp_path):
     scene, base = tiny
-    cfg = coarse_cfg(base, "two.toml", "stop_pilots = 2\n")
-    ws = tmp_path / "ws"
-    subprocess.run(wgs_cmd(ws, cfg, "prepare", str(scene)), check=True, capture_output=True)
-    proc = subprocess.run(wgs_cmd(ws, cfg, "coarse", quiet=False), capture_output=True, text=True)
-    assert proc.returncode == 0, proc.stderr
-    photos = json.loads((ws / "scene/scene.json").read_text())["train_names"]
-    held_out = json.loads((ws / "1_coarse/manifest.json").read_text())["stopping"]["pilot_iterations"]
-    assert list(held_out) == [photos[0], photos[2]]
+    _, m, photos = prepared_and_coarse(tmp_path / "ws", coarse_cfg(base, "two.toml", "stop_pilots = 2\n"), scene)
+    assert list(m["stopping"]["pilot_iterations"]) == [photos[0], photos[2]]
