@@ -10,7 +10,7 @@ import torch
 from conftest import TINY, make_scene
 from test_resume import start_and_signal_when, wgs_cmd
 
-from wgs.gaussians.stopping import mean_curve, plateau_iteration, smoothed, still_gaining
+from wgs.gaussians.stopping import mean_curve, pilot_cap, plateau_iteration, smoothed, still_gaining
 
 
 def rising_then_falling(peak=300, top=20.0, end=600, every=25):
@@ -41,6 +41,14 @@ def test_mean_curve_holds_an_ended_pilot_at_its_last_score_and_smoothing_average
     assert mean_curve([a, b]) == [(0, 11.0), (25, 13.0), (50, 14.0)]
     assert smoothed(a, 50) == [(0, 10.0), (25, 11.0), (50, 13.0)]
     assert smoothed(a, 1) == a
+
+
+def test_a_pilot_runs_no_further_than_its_curve_can_shorten_the_run():
+    cap = pilot_cap(1500, 3.0, 250)
+    assert cap == 750
+    assert round(3.0 * (cap - 250)) >= 1500  # a plateau seen only at the cap leaves all 1500 iterations
+    assert pilot_cap(300, 1.0, 250) == 300  # never past the run itself
+    assert pilot_cap(1000, 3.0, 250) == 584
 
 
 @pytest.fixture(scope="module")
@@ -114,3 +122,4 @@ def test_at_most_stop_pilots_pilots_spread_over_the_photos(tiny, tmp_path):
     scene, base = tiny
     _, m, photos = prepared_and_coarse(tmp_path / "ws", coarse_cfg(base, "two.toml", "stop_pilots = 2\n"), scene)
     assert list(m["stopping"]["pilot_iterations"]) == [photos[0], photos[2]]
+    assert all(n <= pilot_cap(120, 3.0, 40) == 80 for n in m["stopping"]["pilot_iterations"].values())

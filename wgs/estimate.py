@@ -39,7 +39,7 @@ from .config import (
     time_boxed,
 )
 from .errors import InputError
-from .gaussians.stopping import StopParams
+from .gaussians.stopping import StopParams, pilot_cap
 from .io import atomic_write_json
 from .progress import log
 from .scene.prepare import downscale_for
@@ -255,10 +255,10 @@ def expected_iterations(cfg: TrainConfig) -> int:
 
 def pilots_s(cal: Calibration, cfg: CoarseConfig, facts: SceneFacts, workers: int) -> float:
     """The held-out rule's pilots: one per photo (at most `stop_pilots`) at half size, each until
-    `stop_patience` past the expected plateau; 0 where the rule is off."""
+    `stop_patience` past the expected plateau, at most `pilot_cap`; 0 where the rule is off."""
     if not isinstance(cfg, StopParams) or cfg.stop != "held-out" or cfg.max_seconds:
         return 0.0
-    length = min(cfg.iterations, EXPECTED_PLATEAU + cfg.stop_patience)
+    length = min(pilot_cap(cfg.iterations, cfg.stop_margin, cfg.stop_patience), EXPECTED_PLATEAU + cfg.stop_patience)
     share = workers / SIDE_BY_SIDE_THROUGHPUT if workers > 1 else 1
     return math.ceil(min(facts.n_train, cfg.stop_pilots) / workers) * length * cal.view_s(facts.pixels / 4) * share
 

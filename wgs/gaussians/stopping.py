@@ -9,6 +9,7 @@ mean curve says where the scene stopped gaining; the full run stops there.
 
 from __future__ import annotations
 
+import math
 import statistics
 from dataclasses import dataclass
 
@@ -30,13 +31,20 @@ class StopParams:
     )
     stop_every: int = 25  # a pilot scores its held-out photo every so many iterations
     stop_tolerance_db: float = 0.1  # a score within this of the best counts as the best
-    stop_patience: int = 250  # a pilot ends after this many iterations without a better score
+    stop_patience: int = 250  # a pilot ends after this many iterations without a better score (or at `pilot_cap`)
     stop_min_iterations: int = 100  # the full run trains at least this many iterations
     stop_pilots: int = 4  # at most this many pilots, their held-out photos spread over the photos' order
     # the full run trains this many times the pilots' plateau: a photo held out 90 degrees from the
     # others stops gaining before the views between the photos do (lego, 4 photos: the pilots'
     # plateau at 400, the test views' gain ends near 1000; README, "Where training stops")
     stop_margin: float = 3.0
+
+
+def pilot_cap(iterations: int, margin: float, patience: int) -> int:
+    """The most iterations a pilot needs: a plateau past `iterations / margin` leaves the full run
+    at all its `iterations`, and seeing a plateau there takes `patience` more iterations. Past
+    this point a pilot's curve cannot shorten the run."""
+    return min(iterations, math.ceil(iterations / margin) + patience)
 
 
 def plateau_iteration(curve: Curve, tolerance_db: float) -> int:
@@ -73,4 +81,4 @@ def mean_curve(curves: list[Curve]) -> Curve:
     return [(it, statistics.fmean(at(c, it) for c in curves)) for it in its]
 
 
-__all__ = ["Curve", "StopParams", "mean_curve", "plateau_iteration", "smoothed", "still_gaining"]
+__all__ = ["Curve", "StopParams", "mean_curve", "pilot_cap", "plateau_iteration", "smoothed", "still_gaining"]

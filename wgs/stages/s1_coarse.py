@@ -13,7 +13,7 @@ import torch
 from ..config import CoarseConfig
 from ..curves import test_probe, write_curve
 from ..gaussians.splats import VIEWER_SH_DEGREE, Splats, export_ply, save_checkpoint, to_world
-from ..gaussians.stopping import Curve, mean_curve, plateau_iteration, smoothed, still_gaining
+from ..gaussians.stopping import Curve, mean_curve, pilot_cap, plateau_iteration, smoothed, still_gaining
 from ..gaussians.trainer import Probe, TrainResult, render_frame, train_gaussians
 from ..io import atomic_write_json
 from ..io.exr import write_subbands
@@ -74,8 +74,8 @@ def train_model(
 def train_pilot(ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: int, held_out: str) -> Curve:
     """One pilot of the stopping rule: the coarse model at half size without the photo `held_out`
     (its visual hull from the other photos' masks), its PSNR at that photo every `cfg.stop_every`
-    iterations until it stops gaining (`gaussians.stopping`). Module level so that a spawned
-    process can run it."""
+    iterations until it stops gaining, or until `pilot_cap`, past which its curve cannot shorten
+    the run (`gaussians.stopping`). Module level so that a spawned process can run it."""
     scene = load_prepared(ws.output("scene", "prepared"))
     fold = dataclasses.replace(scene, train=[f for f in scene.train if f.name != held_out])
     bg = background_for(scene)
@@ -97,7 +97,9 @@ def train_pilot(ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: in
     res = train_gaussians(
         initial_splats(fold, cfg, seed),
         fold.train,
-        dataclasses.replace(cfg, half_size_until=1.0),
+        dataclasses.replace(
+            cfg, half_size_until=1.0, end_iteration=pilot_cap(cfg.iterations, cfg.stop_margin, cfg.stop_patience)
+        ),
         device,
         extent=1.0,
         desc=f"coarse pilot without {held_out}",
