@@ -7,9 +7,11 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from wgs.gaussians.localise import axis_angle_quat, localise
+from wgs.gaussians.localise import axis_angle_quat, camera_delta, localise, move_world
+from wgs.gaussians.pose_refine import CameraCorrections
 from wgs.gaussians.project import quat_to_rotmat
-from wgs.gaussians.splats import create_splats
+from wgs.gaussians.render import rasterize
+from wgs.gaussians.splats import activate, create_splats
 from wgs.gaussians.trainer import render_frame
 from wgs.scene.dataset import Frame
 from wgs.scene.orbit import look_at
@@ -78,3 +80,53 @@ def test_axis_angle_quat_is_a_unit_rotation_by_the_angle_and_smooth_at_zero():
     zero = torch.zeros(3, dtype=torch.float64, requires_grad=True)
     torch.autograd.gradcheck(axis_angle_quat, (zero,))
     torch.autograd.gradcheck(axis_angle_quat, (omega.double().requires_grad_(),))
+
+
+def test_the_moved_world_seen_from_a_camera_is_the_world_seen_from_the_corrected_camera():
+    g = torch.Generator().manual_seed(3)
+    means = torch.randn(20, 3, generator=g, dtype=torch.float64)
+    quats = torch.nn.functional.normalize(torch.randn(20, 4, generator=g, dtype=torch.float64), dim=-1)
+    viewmat = torch.tensor(look_at(np.array([0.3, -2.5, 0.5]), np.zeros(3), np.array([0, 0, 1.0])))
+    omega, tau = torch.tensor([0.02, -0.03, 0.01], dtype=torch.float64), torch.tensor([0.05, 0.0, -0.02]).double()
+    moved, q = move_world(means, quats, viewmat, omega, tau)
+    delta = camera_delta(omega, tau)
+    corrected = delta @ viewmat
+    # the same points in the camera's frame, and the same orientations
+    assert torch.allclose(moved @ viewmat[:3, :3].T + viewmat[:3, 3], means @ corrected[:3, :3].T + corrected[:3, 3])
+    assert torch.allclose(viewmat[:3, :3] @ quat_to_rotmat(q), corrected[:3, :3] @ quat_to_rotmat(quats))
+    same, same_q = move_world(means, quats, viewmat, torch.zeros(3).double(), torch.zeros(3).double())
+    assert torch.allclose(same, means) and torch.allclose(same_q, quats)
+
+
+def test_gradcheck_move_world():
+    g = torch.Generator().manual_seed(4)
+    means = torch.randn(5, 3, generator=g, dtype=torch.float64)
+    quats = torch.nn.functional.normalize(torch.randn(5, 4, generator=g, dtype=torch.float64), dim=-1)
+    viewmat = torch.tensor(look_at(np.array([0.3, -2.5, 0.5]), np.zeros(3), np.array([0, 0, 1.0])))
+    omega = torch.tensor([0.02, -0.03, 0.01], dtype=torch.float64, requires_grad=True)
+    tau = torch.tensor([0.05, 0.0, -0.02], dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda o, t: move_world(means, quats, viewmat, o, t), (omega, tau))
+
+
+def test_camera_corrections_leave_the_first_view_and_move_the_others():
+    splats, bg = textured_blob(), torch.ones(3)
+    frames = [
+        photo_at(splats, camera(look_at(np.array([x, -2.5, 0.5]), np.zeros(3), np.array([0, 0, 1.0]))), bg)
+        for x in (0.0, 0.8)
+    ]
+    cams = CameraCorrections(2, lr=1e-2, device=torch.device("cpu"))
+    params = {k: v.requires_grad_() for k, v in splats.items()}
+    for i, f in enumerate(frames):
+        means, quats, scales, opac, sh = activate(params)
+        off = replace(f, viewmat=torch.tensor(turned(f.viewmat.double().numpy(), 2.0, 0.02), dtype=torch.float32))
+        m, q = cams.move(i, means, quats, off.viewmat)
+        rgb, _, _ = rasterize(m, q, scales, opac, sh, off.viewmat, off.K, SIZE, SIZE, bg)
+        (rgb - f.pixels).abs().mean().backward()
+    cams.step()
+    moved = cams.viewmats([f.viewmat for f in frames])
+    assert torch.equal(moved[0], frames[0].viewmat)  # the world's anchor
+    assert not torch.equal(moved[1], frames[1].viewmat)
+    state = cams.state_dict()
+    again = CameraCorrections(2, lr=1e-2, device=torch.device("cpu"))
+    again.load_state_dict(state)
+    assert all(torch.equal(a, b) for a, b in zip(again.viewmats([f.viewmat for f in frames]), moved, strict=True))

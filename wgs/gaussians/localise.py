@@ -24,16 +24,42 @@ def axis_angle_quat(omega: torch.Tensor) -> torch.Tensor:
     return torch.cat([torch.cos(theta / 2)[None], 0.5 * torch.sinc(theta / (2 * torch.pi)) * omega])
 
 
+def move_world(
+    means: torch.Tensor, quats: torch.Tensor, viewmat: torch.Tensor, omega: torch.Tensor, tau: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The Gaussians moved so that they render at `viewmat` as the unmoved ones do at the camera
+    `camera_delta(omega, tau) @ viewmat`: a world point x goes to Rc^T (R(omega) (Rc x + tc) + tau - tc).
+    The rasterizer gives gradients for the Gaussians, not the camera; this carries them to the
+    camera's correction.
+
+    Args:
+        means [N, 3], quats [N, 4] wxyz (unit); viewmat [4, 4] world-to-camera;
+        omega [3] axis-angle (radians) and tau [3], in the camera's frame.
+    Returns:
+        moved means [N, 3] and quats [N, 4].
+    """
+    Rc, tc = viewmat[:3, :3], viewmat[:3, 3]
+    R = quat_to_rotmat(axis_angle_quat(omega)[None])[0]
+    moved = ((means @ Rc.T + tc) @ R.T + tau - tc) @ Rc
+    return moved, quat_multiply(axis_angle_quat(Rc.T @ omega).expand_as(quats), quats)
+
+
+def camera_delta(omega: torch.Tensor, tau: torch.Tensor) -> torch.Tensor:
+    """The camera-frame correction [4, 4] = [R(omega) | tau] (detached), applied as delta @ viewmat."""
+    with torch.no_grad():
+        delta = torch.eye(4, dtype=omega.dtype)
+        delta[:3, :3] = quat_to_rotmat(axis_angle_quat(omega)[None])[0]
+        delta[:3, 3] = tau
+    return delta
+
+
 def localise(
     splats: Splats, frame: Frame, background: torch.Tensor, steps: int, lr: float = 2e-3
 ) -> tuple[Frame, torch.Tensor]:
     """`frame` with its camera moved (6 degrees of freedom, Adam on the photometric L1 of the photo
     composited on `background`) to where the frozen `splats` fit its photo best.
 
-    The rasterizer gives gradients for the Gaussians, not the camera, so the world moves instead:
-    a rotation omega and shift tau in the camera's frame move a world point x to
-    Rc^T (R(omega) (Rc x + tc) + tau - tc), which renders at the original camera as x does at the
-    camera delta @ viewmat, delta = [R(omega) | tau].
+    The world moves instead of the camera (`move_world`).
 
     Args:
         splats: a model (raw parameters, as trained); detached here.
@@ -44,25 +70,19 @@ def localise(
         the moved frame, and delta [4, 4] (camera-frame rotation and shift; identity at steps=0).
     """
     means, quats, scales, opac, sh = (t.detach().cpu() for t in activate(splats))
-    Rc, tc = frame.viewmat[:3, :3], frame.viewmat[:3, 3]
     truth = composite(frame.pixels, frame.mask, background)
     omega = torch.zeros(3, requires_grad=True)
     tau = torch.zeros(3, requires_grad=True)
     opt = torch.optim.Adam([omega, tau], lr=lr)
     for _ in range(steps):
-        R = quat_to_rotmat(axis_angle_quat(omega)[None])[0]
-        moved = ((means @ Rc.T + tc) @ R.T + tau - tc) @ Rc
-        q = quat_multiply(axis_angle_quat(Rc.T @ omega).expand_as(quats), quats)
+        moved, q = move_world(means, quats, frame.viewmat, omega, tau)
         rgb, _, _ = rasterize(moved, q, scales, opac, sh, frame.viewmat, frame.K, frame.width, frame.height, background)
         loss = (rgb - truth).abs().mean()
         opt.zero_grad()
         loss.backward()
         opt.step()
-    with torch.no_grad():
-        delta = torch.eye(4)
-        delta[:3, :3] = quat_to_rotmat(axis_angle_quat(omega)[None])[0]
-        delta[:3, 3] = tau
+    delta = camera_delta(omega, tau)
     return replace(frame, viewmat=delta @ frame.viewmat), delta
 
 
-__all__ = ["axis_angle_quat", "localise"]
+__all__ = ["axis_angle_quat", "camera_delta", "localise", "move_world"]

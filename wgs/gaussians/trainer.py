@@ -31,6 +31,7 @@ from ..resume import Checkpointer, check_interrupt, deferred_stop, rng_state, se
 from ..scene.dataset import Frame, halved
 from ..threads import adapt as adapt_threads
 from .init import floater_mask
+from .pose_refine import CameraCorrections
 from .render import rasterize
 from .splats import Splats, activate
 from .strategy import DensifyParams, DensifyStrategy, remove
@@ -183,6 +184,7 @@ def train_gaussians(
     pseudo: PseudoViews | None = None,
     checkpoint: Checkpointer | None = None,
     probe: Probe | None = None,
+    cameras: CameraCorrections | None = None,
 ) -> TrainResult:
     """Optimise `splats` (raw, normalised world) on `frames` (with images). Returns the new splats.
 
@@ -191,6 +193,7 @@ def train_gaussians(
     pseudo: extra views trained with L1 + L2 (+ LPIPS) every `pseudo.every` iterations.
     checkpoint: saves the full state periodically, at the end and on Ctrl-C; continues from it on --resume.
     probe: measured at the start, every `probe.every_s` training seconds and at the end (TrainResult.curve).
+    cameras: corrections of the frames' cameras, trained with the model (`pose_refine`).
     """
     params = {k: v.detach().to(device).clone().requires_grad_(True) for k, v in splats.items()}
     optimizers = make_optimizers(params, cfg, extent)
@@ -226,6 +229,8 @@ def train_gaussians(
         t0 -= saved["elapsed"]
         finished = saved["finished"]
         curve, probe_s = list(saved.get("curve", [])), saved.get("probe_s", 0.0)
+        if cameras is not None:
+            cameras.load_state_dict(saved["cameras"])
 
     probe_every_s = probe.every_s if probe is not None else 0.0
 
@@ -256,6 +261,8 @@ def train_gaussians(
             "curve": curve,
             "probe_s": probe_s,
         }
+        if cameras is not None:
+            out["cameras"] = cameras.state_dict()
         if not finished:  # a finished loop needs no moments: its final save stays the size of the model
             out["optimizers"] = {k: o.state_dict() for k, o in optimizers.items()}
             out["strategy"] = {k: (None if v is None else v.cpu()) for k, v in state.items()}
@@ -287,6 +294,8 @@ def train_gaussians(
             deg = min(max_deg, (sched - 1) // max(cfg.sh_increase_every, 1))
             with record_function("wgs:render"):
                 means, quats, scales, opac, sh = activate(params)
+                if cameras is not None:
+                    means, quats = cameras.move(i, means, quats, viewmat)
                 rgb, alpha, meta = rasterize(means, quats, scales, opac, sh[:, : (deg + 1) ** 2], viewmat, K, w, h, bg)
             with record_function("wgs:loss"):
                 if room is not None:  # no colours (and so nothing for pixel weights to hide): only the outline
@@ -311,6 +320,8 @@ def train_gaussians(
                         opt.param_groups[0]["lr"] = cfg.lr_means * extent * decay ** min(sched, cfg.iterations)
                     opt.step()
                     opt.zero_grad(set_to_none=True)
+                if cameras is not None:
+                    cameras.step()
             with record_function("wgs:finite_check"):
                 # a group's sum is non-finite when an element is (or on overflow): the exact test only then
                 if not torch.isfinite(torch.stack([p.detach().sum() for p in params.values()])).all():
