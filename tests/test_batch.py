@@ -15,6 +15,7 @@ from conftest import TINY_ONE_MODEL, expect_error, make_scene, run_cli
 
 from wgs.batch import SceneTask, read_scene_list, shard, shard_from_env
 from wgs.cli import cli
+from wgs.cli.batch import all_options_check
 from wgs.errors import InputError
 
 pytestmark = pytest.mark.slow  # `pytest -m 'not slow'` for a quick loop; make test runs all
@@ -95,10 +96,11 @@ def test_sharded_runs_split_the_work(scenes, tmp_path):
 
 
 def test_scene_list_parsing_and_its_errors(scenes, tmp_path):
-    tasks = read_scene_list(str(scenes / "scenes.txt"), cli.commands["all"])
+    check = all_options_check(cli.commands["all"])
+    tasks = read_scene_list(str(scenes / "scenes.txt"), check)
     assert [(t.name, t.options) for t in tasks] == [("apple", ("--views", "4")), ("broken", ()), ("cube", ())]
     assert all(Path(t.scene).is_absolute() for t in tasks)
-    globbed = read_scene_list(str(scenes / "data" / "*"), cli.commands["all"])
+    globbed = read_scene_list(str(scenes / "data" / "*"), check)
     assert [t.name for t in globbed] == ["apple", "broken", "cube"]
     bad = tmp_path / "bad.txt"
     for text, needle in [
@@ -111,7 +113,7 @@ def test_scene_list_parsing_and_its_errors(scenes, tmp_path):
     ]:
         bad.write_text(text)
         with pytest.raises(InputError, match=re.escape(needle)):
-            read_scene_list(str(bad), cli.commands["all"])
+            read_scene_list(str(bad), check)
     expect_error(tmp_path, ["batch", tmp_path / "none*", "-o", tmp_path / "o"], "no scene folder matches")
 
 

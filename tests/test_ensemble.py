@@ -75,7 +75,7 @@ def test_models_side_by_side_equal_the_one_thread_ones_in_order(blender_scene, t
     for ws in (serial, side):
         invoke("-w", ws.root, "prepare", blender_scene)
     invoke("--threads", "1", "-w", serial.root, "coarse", *TINY, "--ensemble", "3")
-    monkeypatch.setattr(s1_coarse, "side_by_side", lambda cfg, device, pixels: 2)
+    monkeypatch.setattr(s1_coarse, "side_by_side", lambda models, iterations, pixels, on_cpu: 2)
     invoke("-w", side.root, "coarse", *TINY, "--ensemble", "3")  # (also resets the thread count)
     assert serial.manifest("coarse")["side_by_side"] == 1 and side.manifest("coarse")["side_by_side"] == 2
     for parts in (("model",), ("members", member_file(1)), ("members", member_file(2))):
@@ -86,9 +86,10 @@ def test_models_side_by_side_equal_the_one_thread_ones_in_order(blender_scene, t
 
 
 def test_side_by_side_only_on_the_cpu_and_for_work_worth_a_process():
-    cfg = s1_coarse.CoarseConfig(iterations=1500, ensemble=8)
+    from wgs.threads import configured_count, side_by_side
+
     lego = 200 * 200
-    assert s1_coarse.side_by_side(cfg, torch.device("cpu"), lego) == min(8, s1_coarse.configured_count())
-    assert s1_coarse.side_by_side(cfg, torch.device("cuda"), lego) == 1
-    assert s1_coarse.side_by_side(s1_coarse.CoarseConfig(iterations=30, ensemble=2), torch.device("cpu"), 64 * 64) == 1
-    assert s1_coarse.side_by_side(s1_coarse.CoarseConfig(iterations=1500, ensemble=1), torch.device("cpu"), lego) == 1
+    assert side_by_side(8, 1500, lego, on_cpu=True) == min(8, configured_count())
+    assert side_by_side(8, 1500, lego, on_cpu=False) == 1
+    assert side_by_side(2, 30, 64 * 64, on_cpu=True) == 1
+    assert side_by_side(1, 1500, lego, on_cpu=True) == 1

@@ -25,8 +25,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import click
-
 from .errors import InputError
 from .io import atomic_write_bytes, atomic_write_json
 from .progress import fmt, log
@@ -49,7 +47,11 @@ class SceneTask:
 
 
 # ----------------------------------------------------------------------------- the scene list
-def read_scene_list(spec: str, all_command: click.Command) -> list[SceneTask]:
+# check_options(scene, options) -> why `wgs all` would refuse them (None: it takes them)
+OptionsCheck = Callable[[Path, list[str]], str | None]
+
+
+def read_scene_list(spec: str, check_options: OptionsCheck) -> list[SceneTask]:
     """SCENES: a text file (one scene folder per line, then optional `wgs all` options; `#` starts a
     comment; paths relative to the file) or a glob of scene folders."""
     path = Path(spec)
@@ -67,12 +69,12 @@ def read_scene_list(spec: str, all_command: click.Command) -> list[SceneTask]:
             if not tokens:
                 continue
             scene = (path.parent / tokens[0]).resolve()
-            tasks.append(make_task(scene, tokens[1:], all_command, f"line {n}: ", path))
+            tasks.append(make_task(scene, tokens[1:], check_options, f"line {n}: ", path))
     else:
         matches = sorted(p for p in glob.glob(spec) if Path(p).is_dir())
         if not matches:
             raise InputError("no scene list file of that name and no scene folder matches it as a glob", spec)
-        tasks = [make_task(Path(m).resolve(), [], all_command, "", spec) for m in matches]
+        tasks = [make_task(Path(m).resolve(), [], check_options, "", spec) for m in matches]
     if not tasks:
         raise InputError("the scene list names no scene", spec)
     seen: dict[str, str] = {}
@@ -87,15 +89,14 @@ def read_scene_list(spec: str, all_command: click.Command) -> list[SceneTask]:
     return tasks
 
 
-def make_task(scene: Path, options: list[str], all_command: click.Command, where: str, source: str | Path) -> SceneTask:
+def make_task(scene: Path, options: list[str], check: OptionsCheck, where: str, source: str | Path) -> SceneTask:
     if not scene.is_dir():
         raise InputError(f"{where}scene folder not found: {scene}", source)
     if any(o in ("-w", "--workspace") or o.startswith("--workspace=") for o in options):
         raise InputError(f"{where}-w is set by wgs batch (ROOT/<scene name>)", source)
-    try:  # the options must parse as `wgs all` options: a typo fails here, not an hour later
-        all_command.make_context("all", [str(scene), *options], resilient_parsing=False)
-    except click.ClickException as exc:
-        raise InputError(f"{where}{exc.format_message()}", source) from None
+    refused = check(scene, options)  # `wgs all`'s own parsing: a typo fails here, not an hour later
+    if refused is not None:
+        raise InputError(f"{where}{refused}", source)
     return SceneTask(scene.name, str(scene), tuple(options))
 
 

@@ -43,6 +43,7 @@ from .gaussians.stopping import StopParams, pilot_cap
 from .io import atomic_write_json
 from .progress import log
 from .scene.prepare import downscale_for
+from .threads import side_by_side
 from .workspace import Workspace, fingerprint
 
 CALIBRATION_SIDES = (128, 256)  # square views the rasterizer is timed at
@@ -81,7 +82,7 @@ D_STEP_BATCH, D_STEP_CROP, D_STEP_CHANNELS = 16, 32, 32  # the D training step t
 # the HF U-Net U: a step's cost in D steps, and the share of its step limit it runs on average (it
 # stops early where it does not beat no repair: 250 of 1500 steps on lego, all 1500 on ethiopianHead)
 U_STEP_SHARE, U_STEPS_RUN = 0.3, 0.5
-# side-by-side coarse models (one thread each, `stages.s1_coarse.side_by_side`) train this many
+# side-by-side coarse models (one thread each, `threads.side_by_side`) train this many
 # times as fast, together, as one model on every thread (measured on 2 cores, wgs/threads.py)
 SIDE_BY_SIDE_THROUGHPUT = 1.5
 PREPARE_S_PER_MEGAPIXEL = 0.08  # reading, undistorting and downscaling a photo, per full-size megapixel
@@ -274,9 +275,7 @@ def _loop_s(cal: Calibration, cfg: TrainConfig, pixels: float, renders: float = 
 def loops(cal: Calibration, cfgs: dict[str, Any], facts: SceneFacts) -> dict[str, tuple[int, float, float]]:
     """Each training stage's (loops run one after another, modelled seconds of one loop, stage factor)."""
     coarse: CoarseConfig = cfgs["coarse"]
-    from .stages.s1_coarse import side_by_side
-
-    workers = side_by_side(coarse, torch.device(cal.device), facts.pixels)
+    workers = side_by_side(coarse.ensemble, coarse.iterations, facts.pixels, torch.device(cal.device).type == "cpu")
     fine: FineConfig = cfgs["fine"]
     mask: MaskDataConfig = cfgs["mask_data"]
     masks = 1.0 if facts.has_masks else NO_MASKS_FACTOR
@@ -311,13 +310,14 @@ def stage_seconds(cal: Calibration, cfgs: dict[str, Any], facts: SceneFacts) -> 
         if cfg.max_seconds:
             loop, factor = min(loop * factor, cfg.max_seconds), 1.0
         out[table] = fixed[table] + count * loop * factor
-    from .stages.s1_coarse import side_by_side
-
     coarse = cfgs["coarse"]
-    pilots = dataclasses.replace(coarse, ensemble=min(facts.n_train, coarse.stop_pilots))
-    out["coarse"] += FACTOR["coarse"] * pilots_s(
-        cal, coarse, facts, side_by_side(pilots, torch.device(cal.device), facts.pixels // 4)
+    pilots = side_by_side(
+        min(facts.n_train, coarse.stop_pilots),
+        coarse.iterations,
+        facts.pixels // 4,
+        torch.device(cal.device).type == "cpu",
     )
+    out["coarse"] += FACTOR["coarse"] * pilots_s(cal, coarse, facts, pilots)
     ft, ev = cfgs["finetune"], cfgs["eval"]
     d_pixels = facts.pixels / 4**ft.levels if ft.domain == "wavelet" else facts.pixels
     d_steps = ft.prior_steps if ft.prior != "none" else ft.d_steps

@@ -170,6 +170,20 @@ def configured_count() -> int:
     return _governor.cores if _governor is not None else thread_count()
 
 
+# A spawned process takes about 5 s to start (torch, numba's cached kernels): worth it from about
+# a lego member's quarter (1500 iterations x 200 x 200 px = 6e7 pixel-iterations, 48 s here).
+SIDE_BY_SIDE_MIN_WORK = 1.5e7
+
+
+def side_by_side(models: int, iterations: int, pixels: int, on_cpu: bool) -> int:
+    """How many of `models` models train at once: on the CPU one per thread this process may use,
+    each in a one-thread process (1.5x the throughput of one model on both cores), when a model's
+    work (`iterations` x `pixels` per view) pays for starting a process; else 1."""
+    if not on_cpu or iterations * pixels < SIDE_BY_SIDE_MIN_WORK:
+        return 1
+    return min(configured_count(), models)
+
+
 def _child_start(parent: int, quiet: bool) -> None:
     """A pool child: one thread, quiet if asked, and gone when its parent is (a SIGKILLed parent's
     children would otherwise train on, stealing the cores from the rerun)."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -63,6 +64,19 @@ class BatchSettings:
     )
 
 
+def all_options_check(all_command: click.Command) -> Callable[[Path, list[str]], str | None]:
+    """`batch.read_scene_list`'s check of a scene's options: how `wgs all` parses them."""
+
+    def check(scene: Path, options: list[str]) -> str | None:
+        try:
+            all_command.make_context("all", [str(scene), *options], resilient_parsing=False)
+        except click.ClickException as exc:
+            return exc.format_message()
+        return None
+
+    return check
+
+
 @click.command()
 @click.argument("scenes")
 @settings_options(BatchSettings)
@@ -77,7 +91,7 @@ def batch(obj, scenes: str, **settings) -> None:
     from .. import batch as b
 
     cfg = BatchSettings(**settings)
-    tasks = b.read_scene_list(scenes, cli.commands["all"])
+    tasks = b.read_scene_list(scenes, all_options_check(cli.commands["all"]))
     if cfg.preset:
         tasks = [
             t if "--preset" in t.options else b.SceneTask(t.name, t.scene, (*t.options, "--preset", cfg.preset))

@@ -22,7 +22,7 @@ from ..metrics import psnr
 from ..progress import log, progress_bar
 from ..resume import Checkpointer
 from ..scene.dataset import PreparedScene, composite, halved, load_prepared
-from ..threads import configured_count, map_in_processes
+from ..threads import map_in_processes, side_by_side
 from ..workspace import StageRun, Workspace
 from . import StageEnv
 from .shared import background_for, initial_splats, member_file, subbands_hwc
@@ -131,7 +131,7 @@ def held_out_stop(
         log("coarse: the pilots ran before the interruption: their stop is kept")
         return found
     pixels = scene.train[0].width * scene.train[0].height // 4
-    workers = side_by_side(dataclasses.replace(cfg, ensemble=len(photos)), device, pixels)
+    workers = side_by_side(len(photos), cfg.iterations, pixels, device.type == "cpu")
     jobs = [(ws, cfg, device, seed, name) for name in photos]
     curves: dict[str, Curve] = {}
     with progress_bar("coarse pilots", len(jobs)) as bar:
@@ -153,23 +153,11 @@ def held_out_stop(
     return record
 
 
-# A spawned process takes about 5 s to start (torch, numba's cached kernels): worth it from about
-# a lego member's quarter (1500 iterations x 200 x 200 px = 6e7 pixel-iterations, 48 s here).
-SIDE_BY_SIDE_MIN_WORK = 1.5e7
-
-
-def side_by_side(cfg: CoarseConfig, device: torch.device, pixels: int) -> int:
-    """How many coarse models train at once: on the CPU one per thread this process may use, each
-    in a one-thread process (1.5x the throughput of one model on both cores, see `threads`), when
-    a model's work (iterations x `pixels` per view) pays for starting a process; else 1."""
-    if device.type != "cpu" or cfg.iterations * pixels < SIDE_BY_SIDE_MIN_WORK:
-        return 1
-    return min(configured_count(), cfg.ensemble)
-
-
 def train_coarse(run: StageRun, ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: int) -> str:
     scene = load_prepared(ws.output("scene", "prepared"))
-    workers = side_by_side(cfg, device, scene.train[0].width * scene.train[0].height)
+    workers = side_by_side(
+        cfg.ensemble, cfg.iterations, scene.train[0].width * scene.train[0].height, device.type == "cpu"
+    )
     stop = held_out_stop(run, ws, cfg, device, seed, scene)
     if stop is not None:
         cfg = dataclasses.replace(cfg, end_iteration=stop["stop_at"])
