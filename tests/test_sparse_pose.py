@@ -68,10 +68,15 @@ def test_three_that_pose_are_kept_and_the_fourth_is_named(tmp_path):
     from conftest import run_cli
 
     make_photos(tmp_path / "p", n=4, azimuths=[0, 30, 60, 200])
-    proc = run_cli(["-w", tmp_path / "ws", "prepare", tmp_path / "p"], tmp_path)
+    (tmp_path / "short.toml").write_text("[prepare]\ncamera_iterations = 100\n")
+    proc = run_cli(["--config", tmp_path / "short.toml", "-w", tmp_path / "ws", "prepare", tmp_path / "p"], tmp_path)
     assert proc.returncode == 0, proc.stderr
     err = " ".join(proc.stderr.split())
     assert "photo_003.png left out: it shares too little" in err and "3 of 4 photos registered" in err
+    # photos wgs posed from a few views: their cameras are corrected, or kept as posed, in one line
+    record = json.loads((tmp_path / "ws" / "scene" / "scene.json").read_text())["cameras_corrected"]
+    said = "cameras: corrected by training" if record["kept"] else "cameras: kept as posed"
+    assert said in err and "of a photo's mask" in err, err
     assert json.loads((tmp_path / "ws" / "scene" / "scene.json").read_text())["train_names"] == [
         f"photo_00{i}.png" for i in range(3)
     ]

@@ -80,6 +80,17 @@ class PrepareConfig(MaskParams):
         bounds=(1, 179),
     )
     sfm_max_image_size: int = 1600  # SIFT on photos downscaled to this longest side
+    # photos wgs posed from a few views (learned matching), with masks of their own: the cameras
+    # corrected by training one coarse model on the photos (wgs.gaussians.pose_refine), and
+    # kept unless the hull of the other photos then leaves out more of each photo's mask
+    cameras: str = option(
+        "correct",
+        "Photos wgs posed from a few views: correct trains their cameras with a model and keeps the correction "
+        "unless the photos' masks then agree worse; posed keeps the cameras as structure-from-motion placed them.",
+        choices=("correct", "posed"),
+    )
+    camera_iterations: int = option(1500, bounds=(1, None))  # the correcting model's iterations
+    camera_lr: float = 1e-4  # Adam's step for each camera's rotation (radians) and shift (normalised units)
     # object masks: "auto" makes them where the scene has none (a salient-object network, then
     # agreement between the posed views, wgs.segment), "none" makes none, or a folder of masks by image name
     masks: str = option(

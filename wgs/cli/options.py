@@ -118,6 +118,7 @@ ALL_FIELDS: dict[str, tuple[str, ...]] = {
     "matcher": ("prepare",),
     "focal": ("prepare",),
     "fov": ("prepare",),
+    "cameras": ("prepare",),
     "masks": ("prepare",),
     "mirror": ("prepare",),
     "ensemble": ("coarse",),

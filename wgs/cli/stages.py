@@ -28,6 +28,7 @@ from .options import all_options, all_overrides, config_options, settings_option
     "matcher",
     "focal",
     "fov",
+    "cameras",
     "masks",
     "mask_agreement",
     "mask_voter_support",

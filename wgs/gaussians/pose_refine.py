@@ -35,12 +35,14 @@ class CameraCorrections:
         self.opt.step()
         self.opt.zero_grad(set_to_none=True)
 
+    def deltas(self) -> torch.Tensor:
+        """Each view's correction [n, 4, 4] (CPU, float64), applied as delta @ viewmat."""
+        omega, tau = self.omega.detach().cpu().double(), self.tau.detach().cpu().double()
+        return torch.stack([camera_delta(w, t) for w, t in zip(omega, tau, strict=True)])
+
     def viewmats(self, viewmats: list[torch.Tensor]) -> list[torch.Tensor]:
-        """The corrected world-to-camera matrices [4, 4] of the views (CPU, float32)."""
-        return [
-            camera_delta(self.omega[i].detach().cpu(), self.tau[i].detach().cpu()) @ v.cpu()
-            for i, v in enumerate(viewmats)
-        ]
+        """The corrected world-to-camera matrices [4, 4] of the views, in their own dtype (CPU)."""
+        return [(d.to(v.dtype) @ v.cpu()) for d, v in zip(self.deltas(), viewmats, strict=True)]
 
     def state_dict(self) -> dict:
         return {"omega": self.omega.detach().cpu(), "tau": self.tau.detach().cpu(), "opt": self.opt.state_dict()}

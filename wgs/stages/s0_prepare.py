@@ -5,13 +5,19 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import math
+import statistics
 from pathlib import Path
 
-from ..config import PrepareConfig
+import torch
+
+from ..config import CoarseConfig, PrepareConfig
 from ..errors import InputError
+from ..gaussians.pose_refine import CameraCorrections
+from ..gaussians.trainer import train_gaussians
 from ..io import atomic_write_bytes, atomic_write_json, read_json
 from ..io.images import image_size, write_png
 from ..progress import log
+from ..scene.colmap import read_model, write_model
 from ..scene.dataset import load_prepared
 from ..scene.formats import detect_format
 from ..scene.prepare import (
@@ -32,6 +38,7 @@ from ..shape.symmetry import mirror_check
 from ..threads import thread_count
 from ..workspace import StageRun, Workspace
 from . import StageEnv
+from .shared import initial_splats
 
 SFM_DIR = "sfm"
 SFM_INPUTS = "inputs.sha256"
@@ -128,7 +135,7 @@ def run_prepare(ws: Workspace, cfg: PrepareConfig, env: StageEnv, force: bool = 
         if why:
             log(why)
             run.record["working_size"] = why
-        return import_scene(run, ws, scene_dir, scene, dataclasses.replace(cfg, downscale=k), force, learned)
+        return import_scene(run, ws, scene_dir, scene, dataclasses.replace(cfg, downscale=k), force, env, learned)
 
     return ws.run_staged("scene", cfg, extra, force, body)
 
@@ -236,6 +243,62 @@ def poses_agree_with_masks(scene_dir: Path, photos_dir: Path) -> None:
 HULL_CHECK_RESOLUTION = 96  # the pose check's hull grid (voxels a side)
 
 
+# a correction is kept unless the hull of the other photos leaves out more of a photo's mask than
+# this beyond the posed cameras' share (right poses measure 0.01-0.3 % at 96 cells a side, README)
+CAMERA_MISSED_TOLERANCE = 0.001
+
+
+def hull_missed(photos) -> float:
+    """The mean share of a photo's mask that the hull of the other photos leaves out."""
+    scores = mean_scores(leave_one_out(photos, HULL_CHECK_RESOLUTION))
+    return scores["missed"] if scores is not None else 0.0
+
+
+def correct_cameras(scene_dir: Path, cfg: PrepareConfig, device: torch.device, seed: int = 0) -> dict:
+    """Photos posed from a few views: their cameras corrected by training one coarse model (the
+    defaults' schedule) on them with `CameraCorrections` (the first camera held). The correction
+    is written into the prepared scene's model unless the hull of the other photos then leaves
+    out more of each photo's mask (`leave_one_out`, as the pose check measures it, beyond
+    CAMERA_MISSED_TOLERANCE). One line says which, and why."""
+    scene = load_prepared(scene_dir)
+    photos = scene.train
+    coarse = dataclasses.replace(CoarseConfig(), iterations=cfg.camera_iterations)
+    cams = CameraCorrections(len(photos), cfg.camera_lr, device)
+    train_gaussians(
+        initial_splats(scene, coarse, seed),
+        photos,
+        coarse,
+        device,
+        extent=1.0,
+        desc="cameras",
+        seed=seed,
+        has_masks=True,
+        cameras=cams,
+    )
+    moved = cams.viewmats([f.viewmat for f in photos])
+    corrected = [dataclasses.replace(f, viewmat=v) for f, v in zip(photos, moved, strict=True)]
+    before, after = (hull_missed(views) for views in (photos, corrected))
+    turns = [math.degrees(float(w.norm())) for w in cams.omega.detach()[1:]]  # the first camera is held
+    record = {
+        "kept": after <= before + CAMERA_MISSED_TOLERANCE,
+        "hull_missed_posed": round(before, 6),
+        "hull_missed_corrected": round(after, 6),
+        "median_turn_deg": round(statistics.median(turns), 4),
+    }
+    agree = (
+        f"the hull of the other photos leaves out {100 * after:.2f} % of a photo's mask ({100 * before:.2f} % as posed)"
+    )
+    if record["kept"]:
+        model = read_model(scene_dir / "sparse")
+        for f, delta in zip(photos[1:], cams.deltas()[1:], strict=True):  # the stored poses, in float64
+            model[f.name] = dataclasses.replace(model[f.name], viewmat=delta @ model[f.name].viewmat.double())
+        write_model(scene_dir / "sparse", model)
+        log(f"cameras: corrected by training (median turn {record['median_turn_deg']:.2f} deg): {agree}")
+    else:
+        log(f"cameras: kept as posed: corrected by training, {agree}")
+    return record
+
+
 def find_mirror_views(scene_dir: Path, cfg: PrepareConfig) -> dict | None:
     """The mirror check on the prepared training views (`shape.symmetry.mirror_check`), in one line;
     None where the masks share no region."""
@@ -272,9 +335,11 @@ def import_scene(
     scene: RawScene,
     cfg: PrepareConfig,
     force: bool,
+    env: StageEnv,
     check_poses: bool = False,
 ) -> str:
-    """`check_poses`: poses from learned matching of a few photos, which the masks then check."""
+    """`check_poses`: poses from learned matching of a few photos, which the masks then check and
+    training then corrects (`correct_cameras`, on `env.device`)."""
     held = ((ws.manifest("scene") or {}).get("summary") or {}).get("source")
     if held is not None and Path(held) != scene_dir.resolve() and not force:
         raise InputError(
@@ -291,6 +356,9 @@ def import_scene(
     log(mask_line(info["masks"], ws.output("scene", "masks_sheet"), ws.output("scene", "masks_proposed")))
     if check_poses and info["has_masks"] and info["masks"]["source"] != "auto":
         poses_agree_with_masks(run.dir, scene_dir)
+        if cfg.cameras == "correct":
+            info["cameras_corrected"] = correct_cameras(run.dir, cfg, env.device, env.seed)
+            atomic_write_json(run.dir / "scene.json", info)
     cropped, n = info["masks"]["training_cropped"], len(info["train_names"])
     if cropped:
         log(
