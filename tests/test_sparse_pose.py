@@ -117,3 +117,55 @@ def test_poses_that_disagree_with_the_masks_are_refused(finished_workspace, tmp_
 def test_fewer_than_three_photos_are_refused_at_once(tmp_path):
     make_photos(tmp_path / "p", n=2, azimuths=[0, 20])
     expect_error(tmp_path, ["-w", tmp_path / "ws", "prepare", tmp_path / "p"], "2 photos", "at least 3")
+
+
+def test_a_pair_verifies_the_same_alone_and_among_others(tmp_path):
+    """COLMAP's RANSAC is seeded (`sfm.verification_options`): a pair's verified matches do not hang
+    on which pairs a thread verified before it, so the same photos pose the same every run. Four
+    views of 400 points, 2 px of noise, half of each pair's matches wrong."""
+    import itertools
+
+    import pycolmap
+
+    from wgs.io.images import write_png
+    from wgs.scene.sfm import verification_options
+
+    rng = np.random.default_rng(0)
+    names = [f"p{i}.png" for i in range(4)]
+    for name in names:
+        write_png(tmp_path / "images" / name, np.zeros((240, 320, 3), np.float32))
+    db = tmp_path / "matches.db"
+    pycolmap.Database.open(db).close()
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model, reader.camera_params = "PINHOLE", "300,300,160,120"
+    pycolmap.import_images(db, tmp_path / "images", pycolmap.CameraMode.SINGLE, options=reader)
+    points = rng.normal(size=(400, 3)) * 0.5
+    database = pycolmap.Database.open(db)
+    ids = {im.name: im.image_id for im in database.read_all_images()}
+    for i, name in enumerate(names):
+        a = 0.4 * i  # turned about the vertical axis, 4 units from the points
+        cam = points @ np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]).T + [0, 0, 4]
+        px = 300 * cam[:, :2] / cam[:, 2:] + [160, 120] + rng.normal(size=(400, 2)) * 2
+        database.write_keypoints(ids[name], px.astype(np.float32))
+    pairs = list(itertools.combinations(names, 2))
+    for a, b in pairs:
+        wrong = rng.random(400) < 0.5
+        matches = np.stack([np.arange(400), np.where(wrong, rng.integers(0, 400, 400), np.arange(400))], 1)
+        database.write_matches(ids[a], ids[b], matches.astype(np.uint32))
+    database.close()
+
+    def verified(which: list[tuple[str, str]], run: int) -> bytes:
+        copy, pair_file = tmp_path / f"run{run}.db", tmp_path / f"pairs{run}.txt"
+        shutil.copy(db, copy)
+        pair_file.write_text("".join(f"{a} {b}\n" for a, b in which))
+        pycolmap.verify_matches(copy, pair_file, options=verification_options(sparse=True))
+        database = pycolmap.Database.open(copy)
+        try:
+            inliers = database.read_two_view_geometry(ids[pairs[-1][0]], ids[pairs[-1][1]]).inlier_matches
+        finally:
+            database.close()
+        assert len(inliers) > 150
+        return inliers.tobytes()
+
+    runs = [verified(which, k) for k, which in enumerate((pairs, pairs[-1:], pairs, pairs[-1:]))]
+    assert len(set(runs)) == 1
