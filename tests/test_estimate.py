@@ -12,7 +12,12 @@ from wgs.errors import InputError
 from wgs.estimate import (
     CALIBRATION_MAX_AGE_S,
     EXPECTED_PLATEAU,
+    FIT_MASK_SHARE,
+    FIXED_STEPS,
+    MASK_SHARE_SLOPE,
+    MIN_SHARE_FACTOR,
     MIN_SIZE,
+    NO_MASKS_FACTOR,
     Calibration,
     RunTiming,
     SceneFacts,
@@ -20,6 +25,7 @@ from wgs.estimate import (
     cached_calibration,
     calibrate,
     choose_downscale,
+    cover_factor,
     expected_iterations,
     parse_duration,
     pilots_s,
@@ -85,6 +91,41 @@ def test_the_held_out_rule_is_modelled_as_its_margin_times_the_expected_plateau_
     # twice the iterations: the stop (3 x 400) is below both, and more of it in the schedule's half-size share
     longer = stage_seconds(CAL, configs(coarse={"iterations": 3000}), facts)
     assert 0.5 < longer["coarse"] / stage_seconds(CAL, configs(), facts)["coarse"] < 1
+
+
+def test_the_training_stages_grow_with_the_share_of_the_frame_the_object_covers():
+    """The share lego's 4 views have (where FACTOR was fitted) leaves the model as it was; a
+    close-up's share lengthens the training loops only; no masks is its own factor; a tiny object
+    is not modelled below MIN_SHARE_FACTOR."""
+    cfgs = configs()
+    at_fit = stage_seconds(CAL, cfgs, SceneFacts(128, 128, 4, 8))
+    assert stage_seconds(CAL, cfgs, SceneFacts(128, 128, 4, 8, mask_share=FIT_MASK_SHARE)) == at_fit
+    close = stage_seconds(CAL, cfgs, SceneFacts(128, 128, 4, 8, mask_share=0.8))
+    for t in ("coarse", "mask_data", "fine"):
+        work = at_fit[t] - FIXED_STEPS[t] * CAL.d_step_s
+        grown = close[t] - FIXED_STEPS[t] * CAL.d_step_s
+        assert grown / work == pytest.approx(1 + MASK_SHARE_SLOPE * (0.8 - FIT_MASK_SHARE), rel=0.01), t
+    for t in ("finetune", "repair", "eval"):
+        assert close[t] == at_fit[t]
+    assert cover_factor(SceneFacts(128, 128, 4, 8, has_masks=False, mask_share=0.8)) == NO_MASKS_FACTOR
+    assert cover_factor(SceneFacts(128, 128, 4, 8, mask_share=0.0)) == max(
+        MIN_SHARE_FACTOR, 1 - MASK_SHARE_SLOPE * FIT_MASK_SHARE
+    )
+
+
+def test_prepare_records_the_mask_share_the_estimate_reads(finished_workspace):
+    import numpy as np
+
+    from wgs.io.images import find_with_stem, read_image, to_mask
+
+    ws = finished_workspace[0] / "ws"
+    info = json.loads((ws / "scene" / "scene.json").read_text())
+    masks = [
+        to_mask(read_image(find_with_stem(ws / "scene" / "masks", n.rsplit(".", 1)[0]))) for n in info["train_names"]
+    ]
+    share = info["masks"]["training_share"]
+    assert 0.05 < share < 0.95 and share == pytest.approx(np.mean([(m > 0.5).mean() for m in masks]), abs=1e-4)
+    assert json.loads((ws / "run.json").read_text())["scene"]["mask_share"] == share
 
 
 def test_max_seconds_caps_a_stage():

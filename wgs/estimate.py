@@ -62,6 +62,15 @@ CALIBRATION_MAX_AGE_S = 3600.0
 # views: 2.4 measured at 200x200 with 20k Gaussians (a random blob, tests/test_localise.py's)
 LOCALISE_STEP_VIEWS = 2.5
 FACTOR = {"coarse": 1.0, "mask_data": 0.8, "finetune": 1.75, "repair": 0.9, "fine": 0.93, "eval": 0.9}
+# a training loop's time grows with the share of the frame the object covers (more Gaussians, more
+# of them on each pixel), which the calibration's fixed synthetic cloud does not see: the training
+# stages' factors are times 1 + MASK_SHARE_SLOPE x (mask share - FIT_MASK_SHARE), at least
+# MIN_SHARE_FACTOR. FIT_MASK_SHARE: lego's 4 views, on which FACTOR was fitted; the slope from one
+# generated close-up (0.786 of its photos), checked on kinds of capture left out of that fit
+# (docs/speed.md "The estimate on captures it was not fitted on")
+FIT_MASK_SHARE = 0.245
+MASK_SHARE_SLOPE = 1.4
+MIN_SHARE_FACTOR = 0.5
 # the training stages of a scene without masks: the background is reconstructed too, with about
 # 4x the Gaussians (the fox at 213x379, 2026-11-27)
 NO_MASKS_FACTOR = 1.9
@@ -235,6 +244,7 @@ class SceneFacts:
     full_pixels: int = 0
     has_masks: bool = True
     posed_by_wgs: bool = False  # photos posed by prepare: eval localises the test cameras
+    mask_share: float = FIT_MASK_SHARE  # the share of a training photo inside its mask (prepare's record)
 
     @property
     def pixels(self) -> int:
@@ -264,6 +274,13 @@ def pilots_s(cal: Calibration, cfg: CoarseConfig, facts: SceneFacts, workers: in
     return math.ceil(min(facts.n_train, cfg.stop_pilots) / workers) * length * cal.view_s(facts.pixels / 4) * share
 
 
+def cover_factor(facts: SceneFacts) -> float:
+    """The training stages' factor for how much of the frame the object covers."""
+    if not facts.has_masks:
+        return NO_MASKS_FACTOR
+    return max(MIN_SHARE_FACTOR, 1.0 + MASK_SHARE_SLOPE * (facts.mask_share - FIT_MASK_SHARE))
+
+
 def _loop_s(cal: Calibration, cfg: TrainConfig, pixels: float, renders: float = 1.0) -> float:
     """One training loop's modelled seconds: its expected iterations, those in the first
     `half_size_until` of the schedule at half size."""
@@ -278,7 +295,7 @@ def loops(cal: Calibration, cfgs: dict[str, Any], facts: SceneFacts) -> dict[str
     workers = side_by_side(coarse.ensemble, coarse.iterations, facts.pixels, torch.device(cal.device).type == "cpu")
     fine: FineConfig = cfgs["fine"]
     mask: MaskDataConfig = cfgs["mask_data"]
-    masks = 1.0 if facts.has_masks else NO_MASKS_FACTOR
+    masks = cover_factor(facts)
     return {
         "coarse": (
             math.ceil(coarse.ensemble / workers),
@@ -317,7 +334,7 @@ def stage_seconds(cal: Calibration, cfgs: dict[str, Any], facts: SceneFacts) -> 
         facts.pixels // 4,
         torch.device(cal.device).type == "cpu",
     )
-    out["coarse"] += FACTOR["coarse"] * pilots_s(cal, coarse, facts, pilots)
+    out["coarse"] += FACTOR["coarse"] * cover_factor(facts) * pilots_s(cal, coarse, facts, pilots)
     ft, ev = cfgs["finetune"], cfgs["eval"]
     d_pixels = facts.pixels / 4**ft.levels if ft.domain == "wavelet" else facts.pixels
     d_steps = ft.prior_steps if ft.prior != "none" else ft.d_steps
@@ -501,6 +518,7 @@ class RunTiming:
             len(info["test_names"]),
             has_masks=info["has_masks"],
             posed_by_wgs=info.get("format") == "photos",
+            mask_share=(info.get("masks") or {}).get("training_share", FIT_MASK_SHARE),
         )
         held = ws.run_record()
         cfgs = dict(self.cfgs)
@@ -540,6 +558,7 @@ class RunTiming:
                     "train": facts.n_train,
                     "test": facts.n_test,
                     "has_masks": facts.has_masks,
+                    "mask_share": facts.mask_share,
                 },
             )
         elif held.get("estimate"):

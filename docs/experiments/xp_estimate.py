@@ -14,13 +14,28 @@ import json
 from pathlib import Path
 
 from wgs.config import REGISTRY
-from wgs.estimate import Calibration, SceneFacts, stage_seconds
+from wgs.estimate import FIT_MASK_SHARE, Calibration, SceneFacts, stage_seconds
+from wgs.io.images import find_with_stem, read_image, to_mask
+from wgs.scene.prepare import mask_share
 from wgs.stages.shared import recorded_config
 from wgs.workspace import Workspace
 
 LOSS_2_CORES = (0.0005, 2.0e-7)  # s, s per pixel: the photometric loss, forward + backward (2026-11-27)
 TABLES = [s.table for s in REGISTRY if s.name != "baseline"]
 NAME = {s.table: s.name for s in REGISTRY}
+
+
+def share(ws: Workspace) -> float:
+    """The training photos' mask share, as prepare records it (read from the masks where a
+    workspace was prepared before it was recorded)."""
+    info = json.loads((ws.stage_dir("scene") / "scene.json").read_text())
+    if "training_share" in info["masks"]:
+        return info["masks"]["training_share"]
+    folder = ws.stage_dir("scene") / "masks"
+    found = [find_with_stem(folder, Path(n).stem) for n in info["train_names"]]
+    if not all(found):
+        return FIT_MASK_SHARE
+    return mask_share([to_mask(read_image(p)) for p in found if p is not None])
 
 
 def one(ws: Workspace, wall: float | None) -> dict:
@@ -36,7 +51,11 @@ def one(ws: Workspace, wall: float | None) -> dict:
     sc = run["scene"]
     cfgs = {t: recorded_config(ws, NAME[t]) for t in TABLES}
     masks = sc.get("has_masks", (ws.manifest("scene") or {}).get("summary", {}).get("has_masks", True))
-    now = stage_seconds(cal, cfgs, SceneFacts(sc["width"], sc["height"], sc["train"], sc["test"], has_masks=masks))
+    now = stage_seconds(
+        cal,
+        cfgs,
+        SceneFacts(sc["width"], sc["height"], sc["train"], sc["test"], has_masks=masks, mask_share=share(ws)),
+    )
     actual = {t: (ws.manifest(NAME[t]) or {}).get("wall_time_s") for t in TABLES}
     printed = run.get("estimate") or {}
     shown = [t for t in TABLES if t != "prepare" and printed.get(t) is not None and actual[t] is not None]
@@ -50,6 +69,7 @@ def one(ws: Workspace, wall: float | None) -> dict:
         "quality": quality,
         "workspace": ws.root.name,
         "size": f"{sc['width']}x{sc['height']}",
+        "mask_share": share(ws),
         "budget_s": run.get("budget_s"),
         "stages": {t: {"printed": printed.get(t), "now": now[t], "actual": actual[t]} for t in shown},
         "after_prepare": tot,
@@ -71,15 +91,16 @@ def main() -> None:
     rows = [one(Workspace(p), walls.get(p.name)) for p in a.workspaces]
     print(
         "| workspace | size | budget (s) | estimate printed (s) | model now (s) | the stages took (s) | "
-        "printed / took | prepare (s) | `wgs all` wall (s) | (prepare + printed) / wall |"
+        "printed / took | now / took | prepare (s) | `wgs all` wall (s) | (prepare + printed) / wall |"
     )
-    print("| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
+    print("| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
     for r in rows:
         t, wall = r["after_prepare"], r["wall_s"]
         whole = f"{(r['prepare_s'] + t['printed']) / wall:.2f}" if wall else ""
         print(
             f"| {r['workspace']} | {r['size']} | {r['budget_s'] or ''} | {t['printed']:.0f} | {t['now']:.0f} | "
-            f"{t['actual']:.0f} | {t['printed'] / t['actual']:.2f} | {r['prepare_s']:.0f} | "
+            f"{t['actual']:.0f} | {t['printed'] / t['actual']:.2f} | {t['now'] / t['actual']:.2f} | "
+            f"{r['prepare_s']:.0f} | "
             f"{f'{wall:.0f}' if wall else ''} | {whole} |"
         )
     budgeted = [r for r in rows if r["budget_s"] and r["wall_s"]]
@@ -101,6 +122,7 @@ def main() -> None:
         stages = r["stages"].items()
         print(
             r["workspace"],
+            f"mask share {r['mask_share']:.3f}",
             "printed/now/took:",
             " ".join(f"{k} {v['printed']}/{v['now']}/{v['actual']:.1f}" for k, v in stages),
         )

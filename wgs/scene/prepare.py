@@ -189,6 +189,12 @@ def load_views(scene: RawScene, downscale: int, max_pixels: int, out: Path) -> L
     return LoadedViews(names, images, masks, cameras, len(scene.train), downscale, norm)
 
 
+def mask_share(masks: list[np.ndarray]) -> float:
+    """The mean share of a photo's pixels inside its mask (`masks`: [H, W] each, 0..1): how much of
+    the frame the object covers, which the training loops' time grows with (`estimate`)."""
+    return round(float(np.mean([(m > 0.5).mean() for m in masks])), 4)
+
+
 def write_prepared(
     scene: RawScene,
     views: LoadedViews,
@@ -208,6 +214,8 @@ def write_prepared(
         for n, m in zip(names[:n_train], judged[:n_train], strict=True)
         if m is not None and edge_share(torch.from_numpy(np.ascontiguousarray(m))) > CROP_EDGE_SHARE
     ]
+    if all(m is not None for m in masks[:n_train]):
+        mask_info["training_share"] = mask_share([m for m in masks[:n_train] if m is not None])
     has_mask: dict[str, bool] = {}
     for name, mask in zip(names, masks, strict=True):
         if mask is not None:
