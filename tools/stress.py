@@ -1,7 +1,7 @@
 """Slow robustness checks behind `make stress`.
 
-    python -m wgs.stress kill-loop [--fractions 0.2,0.6,0.95] [--out DIR]
-    python -m wgs.stress signal-loop [--moments 10] [--seed 0] [--out DIR]
+    python -m tools.stress kill-loop [--fractions 0.2,0.6,0.95] [--out DIR]
+    python -m tools.stress signal-loop [--moments 10] [--seed 0] [--out DIR]
 
 kill-loop: runs `wgs all` on a generated scene once without interruption (the reference), then
 once per kill point: starts it in a fresh workspace, SIGKILLs it when a given stage has run for a
@@ -32,8 +32,8 @@ from typing import Any
 
 import torch
 
-from .config import UNASKED
-from .workspace import Workspace
+from wgs.config import UNASKED
+from wgs.workspace import Workspace
 
 # Long enough that every stage spans several seconds on a 2-core CPU (the tests use a smaller one).
 STRESS_TOML = """
@@ -285,7 +285,7 @@ def kill_loop(out: Path, fractions: list[float], checkpoint_every: float, hammer
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m wgs.stress")
+    parser = argparse.ArgumentParser(prog="python -m tools.stress")
     sub = parser.add_subparsers(dest="what", required=True)
     k = sub.add_parser("kill-loop", help="SIGKILL `wgs all` at points spread over every stage, rerun, compare")
     k.add_argument(

@@ -1,4 +1,4 @@
-"""Benchmarks (not tests): `python -m wgs.bench rasterizer|iteration|knn|pipeline|batch|contention|sfm|shape`
+"""Benchmarks (not tests): `python -m tools.bench rasterizer|iteration|knn|pipeline|batch|contention|sfm|shape`
 (see --help).
 
 The rasterizer benchmark times our numba fast path and the pure-torch reference in the same run
@@ -21,9 +21,9 @@ from pathlib import Path
 
 import torch
 
-from .gaussians.synthetic import time_backend
-from .scene.dataset import load_prepared
-from .workspace import STAGE_DIRS, Workspace, peak_memory_mb
+from wgs.gaussians.synthetic import time_backend
+from wgs.scene.dataset import load_prepared
+from wgs.workspace import STAGE_DIRS, Workspace, peak_memory_mb
 
 CASES = ((128, 10_000), (256, 50_000))
 
@@ -224,7 +224,7 @@ def bench_contention(prepared: str, root: str, iterations: int, variants: tuple[
 def bench_knn(sizes: tuple[int, ...] = (100_000, 1_000_000), reference_up_to: int = 100_000) -> dict:
     """Mean 3-NN distance (scale init, floater removal): scipy's KD-tree against the brute-force
     torch reference (run only up to `reference_up_to` points: it is O(N^2))."""
-    from .gaussians.init import knn_mean_distance, knn_mean_distance_torch
+    from wgs.gaussians.init import knn_mean_distance, knn_mean_distance_torch
 
     rows = []
     for n in sizes:
@@ -248,11 +248,11 @@ def bench_sfm(scene: str, root: str, matcher: str = "auto", max_image_size: int 
     camera-centre error (share of the scene's camera extent), photos registered, time."""
     import numpy as np
 
-    from .scene.colmap import read_colmap_scene
-    from .scene.formats import read_scene
-    from .scene.pose_error import pose_errors
-    from .scene.sfm import pose_photos
-    from .threads import thread_count
+    from wgs.scene.colmap import read_colmap_scene
+    from wgs.scene.formats import read_scene
+    from wgs.scene.pose_error import pose_errors
+    from wgs.scene.sfm import pose_photos
+    from wgs.threads import thread_count
 
     ref = read_scene(scene)
     photos = sorted(ref.views, key=lambda v: v.name)
@@ -299,13 +299,13 @@ def silhouette_knowledge(ws: Workspace, thresholds: tuple[float, ...] = S_THRESH
     (object probability > 0.5) beside the strict hull's and G_c's opacity's (> 0.5), and for each
     threshold t the share of the hull's excess where S says under t (what carving at t could
     remove) against the share of the true object there (what it would wrongly remove)."""
-    from .config import RepairConfig
-    from .gaussians.splats import load_checkpoint
-    from .gaussians.trainer import render_frame
-    from .shape.hull import silhouette
-    from .shape.scores import silhouette_scores
-    from .stages.s4_repair import shape_models
-    from .stages.shared import background_for
+    from wgs.config import RepairConfig
+    from wgs.gaussians.splats import load_checkpoint
+    from wgs.gaussians.trainer import render_frame
+    from wgs.shape.hull import silhouette
+    from wgs.shape.scores import silhouette_scores
+    from wgs.stages.s4_repair import shape_models
+    from wgs.stages.shared import background_for
 
     scene = load_prepared(ws.output("scene", "prepared"), load_test_images=True)
     device = torch.device("cpu")
@@ -351,7 +351,7 @@ def bench_shape(
     `wgs all` once per `SHAPE_RUNS` entry. G_f's PSNR and silhouette IoU per object, the hull's
     leave-one-out estimate, what S knows at the test views (`silhouette_knowledge`), and the mean
     gains."""
-    from .prior.corpus import build_object, extract, list_objects, snapshot_dir
+    from wgs.prior.corpus import build_object, extract, list_objects, snapshot_dir
 
     base = Path(root)
     src = base / "src"
@@ -433,15 +433,15 @@ def bench_iteration(
     middle of the stage's iterations)."""
     from torch.profiler import ProfilerActivity, profile
 
-    from .config import resolve
-    from .gaussians.trainer import train_gaussians
-    from .stages import StageEnv, run_stage
-    from .stages.shared import initial_splats
+    from wgs.config import resolve
+    from wgs.gaussians.trainer import train_gaussians
+    from wgs.stages import StageEnv, run_stage
+    from wgs.stages.shared import initial_splats
 
     device = torch.device("cpu")
     cfg = resolve(stage)
     if stage == "fine":
-        from .stages.s5_fine import fine_inputs
+        from wgs.stages.s5_fine import fine_inputs
 
         if workspace is None:
             raise SystemExit("iteration --stage fine needs --workspace (a workspace after `wgs repair`)")
@@ -520,10 +520,10 @@ def object_psnr(ws: Workspace, masks_from: Workspace) -> dict[str, float]:
     """PSNR of `ws`'s newest model against the photo inside the test masks of `masks_from`, per test
     view: the one number that compares a run with masks to one without (each renders its own
     background, which the mask leaves out)."""
-    from .gaussians.splats import load_checkpoint
-    from .gaussians.trainer import render_frame
-    from .metrics import psnr
-    from .stages.shared import background_for, newest_model
+    from wgs.gaussians.splats import load_checkpoint
+    from wgs.gaussians.trainer import render_frame
+    from wgs.metrics import psnr
+    from wgs.stages.shared import background_for, newest_model
 
     scene = load_prepared(ws.output("scene", "prepared"), load_test_images=True)
     masked = {f.name: f.object_pixels for f in load_prepared(masks_from.output("scene", "prepared"), True).test}
@@ -608,7 +608,7 @@ def report(root: str, name: str, res: dict, shown: dict | None = None) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(prog="python -m wgs.bench")
+    ap = argparse.ArgumentParser(prog="python -m tools.bench")
     ap.add_argument(
         "which", choices=["rasterizer", "iteration", "pipeline", "batch", "contention", "knn", "sfm", "shape", "masks"]
     )
