@@ -48,11 +48,11 @@ test-cluster: $(VENV)/.installed
 	@for d in slurmctld slurmd slurmstepd munged; do ! pgrep -ax $$d || { echo "test-cluster: $$d left running"; exit 1; }; done
 
 bench: $(VENV)/.installed
-	$(BIN)/python -m wgs.bench rasterizer --json
-	$(BIN)/python -m wgs.bench knn
-	$(BIN)/python -m wgs.bench pipeline --root bench_out
-	$(BIN)/python -m wgs.bench batch --root bench_out
-	$(BIN)/python -m wgs.bench contention --prepared bench_out/wgs --root bench_out
+	$(BIN)/python -m tools.bench rasterizer --json
+	$(BIN)/python -m tools.bench knn
+	$(BIN)/python -m tools.bench pipeline --root bench_out
+	$(BIN)/python -m tools.bench batch --root bench_out
+	$(BIN)/python -m tools.bench contention --prepared bench_out/wgs --root bench_out
 
 ablation: $(VENV)/.installed
 	$(BIN)/wgs -w ablate ablate ../shared/data/lego --views 4 --downscale 2 --mirror none
@@ -80,14 +80,14 @@ shape-prior: $(VENV)/.installed
 # Slow robustness checks: SIGKILL at points spread over every stage + rerun; SIGINT, SIGTERM and
 # SIGUSR1 at 10 random moments each + --resume; long loader fuzzing.
 stress: $(VENV)/.installed
-	$(BIN)/python -m wgs.stress kill-loop
-	$(BIN)/python -m wgs.stress signal-loop
+	$(BIN)/python -m tools.stress kill-loop
+	$(BIN)/python -m tools.stress signal-loop
 	HYPOTHESIS_PROFILE=stress $(BIN)/python -m pytest -q tests/test_fuzz_loaders.py
 
 # what CI runs before the tests: lint, formatting, types (the scope is in pyproject.toml, [tool.mypy])
 lint: $(VENV)/.installed
-	$(BIN)/ruff check wgs tests examples docs/experiments
-	$(BIN)/ruff format --check wgs tests examples docs/experiments
+	$(BIN)/ruff check wgs tools tests examples docs/experiments
+	$(BIN)/ruff format --check wgs tools tests examples docs/experiments
 	$(BIN)/mypy
 
 clean:

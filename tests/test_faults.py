@@ -18,11 +18,19 @@ from wgs.workspace import Workspace
 FAST = "[coarse]\niterations = 200\ninit_points = 800\nhull_resolution = 32\n"
 
 
+@pytest.fixture(scope="module")
+def prepared_once(blender_scene, tmp_path_factory) -> Path:
+    """`wgs prepare` on the scene, once for the module; tests change copies of it."""
+    base = tmp_path_factory.mktemp("faults")
+    assert run_cli(["-q", "-w", base / "ws", "prepare", blender_scene], base).returncode == 0
+    return base / "ws"
+
+
 @pytest.fixture
-def prepared(blender_scene, tmp_path):
+def prepared(prepared_once, tmp_path):
     """A workspace (in tmp_path/ws) with the scene prepared; the config beside it."""
     (tmp_path / "wgs.toml").write_text(FAST)
-    assert run_cli(["-q", "-w", tmp_path / "ws", "prepare", blender_scene], tmp_path).returncode == 0
+    shutil.copytree(prepared_once, tmp_path / "ws")
     return tmp_path / "ws"
 
 

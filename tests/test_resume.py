@@ -1,10 +1,11 @@
 """Interruption: SIGKILL and Ctrl-C at a stage's middle, then a rerun; periodic state, --resume.
 
 The slow version (kill points spread over every stage, a trial killed every few seconds) is
-`make stress` (python -m wgs.stress kill-loop).
+`make stress` (python -m tools.stress kill-loop).
 """
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -16,17 +17,24 @@ import torch
 from conftest import TINY, make_scene
 
 import wgs.resume
+from tools.stress import STACK_MARKERS, max_param_difference, outcome
 from wgs.config import FinetuneConfig
 from wgs.resume import Checkpointer, Interrupted
-from wgs.stress import STACK_MARKERS, max_param_difference, outcome
 from wgs.training.per_object import train_hf_unet, train_scratch_d
 
 pytestmark = pytest.mark.slow  # `pytest -m 'not slow'` for a quick loop; make test runs all
 
-# TINY with longer coarse and mask-data loops, so a kill lands in their middle
-CFG = TINY.replace(
-    "iterations = 30\nrefine_start = 10\nrefine_every = 10", "iterations = 150\nrefine_start = 20\nrefine_every = 20"
-).replace("warmup = 10\npair_every = 10", "warmup = 50\npair_every = 25")
+# TINY with longer coarse and mask-data loops, so a kill lands in their middle; the coarse models
+# train all their iterations (tests/test_stopping.py resumes a stage that the held-out rule stopped)
+CFG = (
+    TINY.replace(
+        "iterations = 30\nrefine_start = 10\nrefine_every = 10",
+        "iterations = 150\nrefine_start = 20\nrefine_every = 20",
+    )
+    .replace("warmup = 10\npair_every = 10", "warmup = 50\npair_every = 25")
+    .replace("[coarse]\niterations = 150", '[coarse]\nstop = "iterations"\niterations = 100')
+)
+assert 'stop = "iterations"\niterations = 100' in CFG and "iterations = 150" in CFG
 
 
 @pytest.fixture(scope="module")
@@ -38,6 +46,17 @@ def setup(tmp_path_factory):
     ref = base / "reference"
     subprocess.run(wgs_cmd(ref, cfg, "all", str(scene)), check=True, capture_output=True)
     return scene, cfg, ref
+
+
+def prepared_copy(setup, tmp_path) -> Path:
+    """A workspace holding the reference run's prepared scene (the same inputs and settings), so
+    that a test starts at the coarse stage without running prepare again."""
+    _, _, ref = setup
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    shutil.copytree(ref / "scene", ws / "scene")
+    shutil.copy(ref / "run.json", ws / "run.json")
+    return ws
 
 
 def wgs_cmd(ws: Path, cfg: Path, *args: str, resume: bool = False, quiet: bool = True) -> list[str]:
@@ -93,9 +112,8 @@ def test_ctrl_c_saves_state_with_one_line_and_resume_continues(setup, tmp_path, 
     """Ctrl-C, or Slurm's --signal=USR1, in `wgs coarse`: the loop saves, one line, exit 128 + the
     signal; `wgs --resume coarse` ends with the uninterrupted run's model. (SIGUSR2, submitit's,
     takes the same handler: `make test-cluster` sends it to a training job through Slurm.)"""
-    scene, cfg, ref = setup
-    ws = tmp_path / "ws"
-    subprocess.run(wgs_cmd(ws, cfg, "prepare", str(scene)), check=True, capture_output=True)
+    _, cfg, ref = setup
+    ws = prepared_copy(setup, tmp_path)
     proc = start_and_signal_when(wgs_cmd(ws, cfg, "coarse"), ws / ".resume/1_coarse/gc.pt", sig)
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 128 + sig
@@ -104,7 +122,7 @@ def test_ctrl_c_saves_state_with_one_line_and_resume_continues(setup, tmp_path, 
     assert "--resume" in lines[0] and "Traceback" not in err
     assert sig == signal.SIGINT or f"({sig.name})" in lines[0]
     stopped = torch.load(ws / ".resume/1_coarse/gc.pt", weights_only=True)["it"]
-    assert 0 < stopped < 150 and not (ws / "1_coarse").exists()
+    assert 0 < stopped < 100 and not (ws / "1_coarse").exists()
     res = subprocess.run(wgs_cmd(ws, cfg, "coarse", resume=True), capture_output=True, text=True)
     assert res.returncode == 0, res.stderr
     a = torch.load(ws / "1_coarse/ckpt.pt", weights_only=True)["splats"]
@@ -116,7 +134,7 @@ def test_a_scheduler_stop_signal_saves_with_one_line_and_resume_finishes_identic
     """Slurm's SIGTERM in `wgs all`, whose prepare stage loaded pycolmap (its glog answers SIGTERM
     with a native stack trace unless wgs puts its own handler back): the loop saves, one line, exit
     128 + the signal; `wgs --resume all` ends with the uninterrupted run's model. (SIGUSR1, which
-    glog leaves alone, in the test above; `python -m wgs.stress signal-loop` sends each signal at 10
+    glog leaves alone, in the test above; `python -m tools.stress signal-loop` sends each signal at 10
     random moments.)"""
     scene, cfg, ref = setup
     sig = signal.SIGTERM
@@ -153,9 +171,8 @@ def test_a_stop_signal_outside_a_loop_stops_at_once_after_pycolmap_loaded(sig):
 
 def coarse_killed_midway(setup, tmp_path) -> Path:
     """A prepared workspace whose coarse stage was SIGKILLed after its first saved state."""
-    scene, cfg, _ = setup
-    ws = tmp_path / "ws"
-    subprocess.run(wgs_cmd(ws, cfg, "prepare", str(scene)), check=True, capture_output=True)
+    _, cfg, _ = setup
+    ws = prepared_copy(setup, tmp_path)
     proc = start_and_signal_when(wgs_cmd(ws, cfg, "coarse"), ws / ".resume/1_coarse/gc.pt", signal.SIGKILL)
     proc.wait()
     return ws

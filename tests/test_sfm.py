@@ -75,7 +75,7 @@ def test_sfm_recovers_the_rendered_cameras(photos, tmp_path):
     assert res.registered == len(cams) == 20 and res.matcher == "exhaustive"
     err = estimated_vs_true(tmp_path / "model", image_dir, cams)
     # small photos of a small object leave the focal length loosely fixed: a real capture does
-    # better (`python -m wgs.bench sfm` on the instant-ngp fox: median 0.26 degrees, 0.5 %)
+    # better (`python -m tools.bench sfm` on the instant-ngp fox: median 0.26 degrees, 0.5 %)
     assert np.median(err["rotation_deg"]) < 1.5 and err["rotation_deg"].max() < 4.0, err
     assert np.median(err["center"]) < 0.05, err
     assert not list(tmp_path.glob(".*tmp*")), "the staging folder is removed"

@@ -544,15 +544,13 @@ def bench_masks(scene: str, root: str, preset: str, views: int, downscale: int) 
     times of each."""
     base = Path(root) / "masks"
     yardstick = Workspace(base / "scoring_masks")
+    size = ("--views", str(views), "--downscale", str(downscale))
     wgs_cli(
         "-w",
         str(yardstick.root),
         "prepare",
         scene,
-        "--views",
-        str(views),
-        "--downscale",
-        str(downscale),
+        *size,
         "--masks",
         "auto",
         "--mask-max-cut",
@@ -563,20 +561,7 @@ def bench_masks(scene: str, root: str, preset: str, views: int, downscale: int) 
     runs = {}
     for mode in ("auto", "none"):
         folder = base / mode
-        t = wgs_cli(
-            "-w",
-            str(folder),
-            "all",
-            scene,
-            "--views",
-            str(views),
-            "--downscale",
-            str(downscale),
-            "--masks",
-            mode,
-            "--preset",
-            preset,
-        )
+        t = wgs_cli("-w", str(folder), "all", scene, *size, "--masks", mode, "--preset", preset)
         runs[mode] = (Workspace(folder), t)
     out = {
         "benchmark": "masks",

@@ -1,6 +1,6 @@
 """Thread discipline: the one place that decides how many threads torch, numba and BLAS use.
 
-Measured on a 2-core machine (`python -m wgs.bench contention`, 600 coarse iterations on lego):
+Measured on a 2-core machine (`python -m tools.bench contention`, 600 coarse iterations on lego):
 with a fixed thread count one run takes 56 s and two runs started together 618 s each (11x),
 because OpenMP threads spin while they wait and two processes' spinning threads steal each
 other's cores. A passive wait policy fixes the pair (89 s) but costs 25% alone (71 s), and one

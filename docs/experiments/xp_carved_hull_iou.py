@@ -1,5 +1,5 @@
 """What carving leaves of the strict hull, scored at the test views of the held-out meshes of
-`python -m wgs.bench shape --root BENCH_ROOT`: the strict hull, S's carved hull (from a workspace
+`python -m tools.bench shape --root BENCH_ROOT`: the strict hull, S's carved hull (from a workspace
 that ran carving with S alone), V's carving at two thresholds, and V's and S's intersected, each
 with the real masks' rule applied to the strict hull. No training: silhouettes of voxel grids only (about 30 s).
 

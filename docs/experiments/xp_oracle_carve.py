@@ -1,6 +1,6 @@
 """Carving's upper bound: S replaced by the silhouettes of the hull of every true mask the scene has
 (its training views and all test views, over the whole sphere), then `wgs all --carve` on a copy of
-the `no-prior` workspace (`--mirror none --no-carve`) of `python -m wgs.bench shape`.
+the `no-prior` workspace (`--mirror none --no-carve`) of `python -m tools.bench shape`.
 
     python xp_oracle_carve.py BENCH_ROOT OBJECT TAG [CONFIG.toml]
 
