@@ -62,20 +62,20 @@ ablation: $(VENV)/.installed
 # stage on sparse views of each, pairs at novel poses, then D and U (a GPU is used when present).
 prior: $(VENV)/.installed
 	$(BIN)/python -m pip install -q -e ".[prior]"
-	$(BIN)/python -m wgs.prior corpus --mirror $(MIRROR) --procedural 60 --limit 150
-	$(BIN)/python -m wgs.prior pairs --budget-min $(PRIOR_BUDGET_MIN)
-	$(BIN)/python -m wgs.prior train
+	$(BIN)/python -m tools.prior corpus --mirror $(MIRROR) --procedural 60 --limit 150
+	$(BIN)/python -m tools.prior pairs --budget-min $(PRIOR_BUDGET_MIN)
+	$(BIN)/python -m tools.prior train
 
 # The silhouette model S and the volume model V: generated objects, novel views over the whole
 # sphere, resumable (cache outside the repo)
 SHAPE_CACHE ?= $(HOME)/.cache/wgs-shape
 shape-prior: $(VENV)/.installed
-	$(BIN)/python -m wgs.prior --cache $(SHAPE_CACHE) corpus --mirror /none --procedural 60 --kitbash 60 \
+	$(BIN)/python -m tools.prior --cache $(SHAPE_CACHE) corpus --mirror /none --procedural 60 --kitbash 60 \
 		--first-seed 2000 --workers 2 --novel-elevations=-85,85
-	$(BIN)/python -m wgs.prior --cache $(SHAPE_CACHE) pairs --workers 2
-	$(BIN)/python -m wgs.prior --cache $(SHAPE_CACHE) train-shape --steps 2500
-	$(BIN)/python -m wgs.prior --cache $(SHAPE_CACHE) volume-pairs --workers 2
-	$(BIN)/python -m wgs.prior --cache $(SHAPE_CACHE) train-volume --steps 2000
+	$(BIN)/python -m tools.prior --cache $(SHAPE_CACHE) pairs --workers 2
+	$(BIN)/python -m tools.prior --cache $(SHAPE_CACHE) train-shape --steps 2500
+	$(BIN)/python -m tools.prior --cache $(SHAPE_CACHE) volume-pairs --workers 2
+	$(BIN)/python -m tools.prior --cache $(SHAPE_CACHE) train-volume --steps 2000
 
 # Slow robustness checks: SIGKILL at points spread over every stage + rerun; SIGINT, SIGTERM and
 # SIGUSR1 at 10 random moments each + --resume; long loader fuzzing.

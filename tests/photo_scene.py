@@ -7,10 +7,10 @@ from pathlib import Path
 
 import numpy as np
 
+from tools.prior.meshes import concat
+from tools.prior.procedural import _palette, fractal_noise, superquadric
+from tools.prior.raster import render_rgba
 from wgs.io.images import write_png
-from wgs.prior.meshes import concat
-from wgs.prior.procedural import _palette, fractal_noise, superquadric
-from wgs.prior.raster import render_rgba
 from wgs.scene.orbit import look_at
 
 

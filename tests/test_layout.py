@@ -134,7 +134,7 @@ def test_training_sits_between_the_networks_and_their_callers():
     # models (networks, sampling, the repair) < training (the loop, objectives, the per-object
     # fine-tune) < stages and prior; the loop itself takes its checkpoint as a protocol (saved state and
     # interrupts, `wgs.resume`, are a utility the per-object trainers wire in)
-    graph = import_graph()
+    graph = import_graph(with_tools=True)
     for m, deps in graph.items():
         if m.startswith("wgs.models"):
             assert not {d for d in deps if d.startswith("wgs.training")}, f"{m} imports the training layer"
@@ -144,7 +144,7 @@ def test_training_sits_between_the_networks_and_their_callers():
     assert "wgs.resume" not in graph["wgs.training.loop"]
     assert "wgs.training.per_object" in graph["wgs.stages.s3_finetune"]
     assert "wgs.training.loop" in graph["wgs.training.denoiser"]
-    assert "wgs.training.denoiser" in graph["wgs.prior.train"]
+    assert "wgs.training.denoiser" in graph["tools.prior.train"]
 
 
 def test_orchestration_and_stages_know_no_click():

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 import torch
 
+from tools.prior.meshes import Mesh, load_gltf, load_mesh, normalise
+from tools.prior.raster import rasterize, render_rgba
 from wgs.errors import InputError
-from wgs.prior.meshes import Mesh, load_gltf, load_mesh, normalise
-from wgs.prior.raster import rasterize, render_rgba
 
 QUAD_V = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float32)
 QUAD_F = np.array([[0, 1, 2], [0, 2, 3]], np.uint32)
@@ -160,7 +160,7 @@ def test_renderer_coverage_and_depth_order():
     # a green quad in front hides the red one; behind, it does not
     for z, visible in ((-0.5, "green"), (0.5, "red")):
         green = Mesh(QUAD_V * 0.3 + [0, 0, z], QUAD_F, np.array([[0, 1.0, 0]] * 2))
-        from wgs.prior.meshes import concat
+        from tools.prior.meshes import concat
 
         px = render_rgba(concat([quad, green]), viewmat, K, 32, 32)[16, 16]
         assert (px[1] > px[0]) == (visible == "green")
@@ -171,7 +171,7 @@ def test_renderer_coverage_and_depth_order():
 
 
 def test_procedural_objects_render():
-    from wgs.prior.procedural import random_shape, random_texture
+    from tools.prior.procedural import random_shape, random_texture
 
     rng = np.random.default_rng(0)
     mesh = normalise(random_shape(rng), 1.0)
@@ -185,10 +185,10 @@ def test_procedural_objects_render():
 def test_corpus_pairs_train_chain(tmp_path):
     """One procedural object -> Blender scene -> our coarse stage -> pairs -> a few prior steps; the
     result loads as a prior and the fine-tune keeps it when no step beats it."""
+    from tools.prior.corpus import build_object, procedural_objects
+    from tools.prior.pairs import object_pairs
+    from tools.prior.train import PriorConfig, pack_pairs, train_prior
     from wgs.models.storage import load_model
-    from wgs.prior.corpus import build_object, procedural_objects
-    from wgs.prior.pairs import object_pairs
-    from wgs.prior.train import PriorConfig, pack_pairs, train_prior
     from wgs.scene.formats import read_scene
     from wgs.workspace import Workspace
 
@@ -215,8 +215,8 @@ def test_corpus_pairs_train_chain(tmp_path):
     assert arrays["hull"].shape == (4, 32, 32) and arrays["hull_depth"].dtype == np.float16
     obj_px = arrays["ref_alpha"] > 127
     assert (arrays["hull"][obj_px] > 127).mean() > 0.95
+    from tools.prior.train_shape import ShapeTrainConfig, load_shape_pairs, train_silhouette
     from wgs.models.silhouette_net import SilhouetteNet, SilhouetteNetConfig
-    from wgs.prior.train_shape import ShapeTrainConfig, load_shape_pairs, train_silhouette
 
     net = SilhouetteNetConfig(channels=8, levels=2, work_size=48)
     data = load_shape_pairs(pairs, net.work_size)
@@ -230,10 +230,10 @@ def test_corpus_pairs_train_chain(tmp_path):
 
 def test_volume_pairs_train_chain(tmp_path):
     """One procedural object -> Blender scene -> (few-view hull, many-view hull) cubes -> a few V steps."""
+    from tools.prior.corpus import build_object, procedural_objects
+    from tools.prior.train_volume import VolumeTrainConfig, load_volume_pairs, train_volume
+    from tools.prior.volume_pairs import object_volume_pairs
     from wgs.models.volume_net import VolumeNet, VolumeNetConfig
-    from wgs.prior.corpus import build_object, procedural_objects
-    from wgs.prior.train_volume import VolumeTrainConfig, load_volume_pairs, train_volume
-    from wgs.prior.volume_pairs import object_volume_pairs
 
     obj = procedural_objects(1)[0]
     scene = tmp_path / "obj"
@@ -328,7 +328,7 @@ def test_shipped_volume_model_loads_with_provenance():
 
 
 def test_kitbash_shape_is_many_flat_coloured_parts():
-    from wgs.prior.procedural import box, cylinder, kitbash_shape
+    from tools.prior.procedural import box, cylinder, kitbash_shape
 
     assert len(box(np.ones(3)).faces) == 12 and len(cylinder(0.1, 0.2, 8).faces) == 32
     mesh = kitbash_shape(np.random.default_rng(3))
@@ -349,8 +349,8 @@ def _tiny_pack(path, n=8, size=16):
 
 
 def test_prior_training_continues_from_its_state_and_starts_from_a_prior(tmp_path):
+    from tools.prior.train import PriorConfig, load_pack, train_d, train_prior
     from wgs.models.storage import load_model
-    from wgs.prior.train import PriorConfig, load_pack, train_d, train_prior
 
     data = load_pack(_tiny_pack(tmp_path / "pack.npz"))
     args = (data["render"], data["ref"], data["holdout"], torch.device("cpu"))

@@ -367,7 +367,7 @@ def test_volume_carving_toward_truth_keeps_the_handle_and_the_real_masks(mug_hul
 
 
 def test_volume_augment_turns_inputs_and_target_alike():
-    from wgs.prior.train_volume import augment
+    from tools.prior.train_volume import augment
 
     gen = torch.Generator().manual_seed(0)
     x = torch.rand(3, 4, 8, 8, 8)

@@ -351,7 +351,7 @@ def bench_shape(
     `wgs all` once per `SHAPE_RUNS` entry. G_f's PSNR and silhouette IoU per object, the hull's
     leave-one-out estimate, what S knows at the test views (`silhouette_knowledge`), and the mean
     gains."""
-    from wgs.prior.corpus import build_object, extract, list_objects, snapshot_dir
+    from tools.prior.corpus import build_object, extract, list_objects, snapshot_dir
 
     base = Path(root)
     src = base / "src"

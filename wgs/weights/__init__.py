@@ -1,4 +1,4 @@
-"""The networks wgs ships, found by path here by the stages that load them and by `wgs.prior`,
+"""The networks wgs ships, found by path here by the stages that load them and by `tools.prior`,
 which builds them (`make prior`, `make shape-prior`). Each folder holds config.json,
 model.safetensors and provenance.json (objects, licences, training curves)."""
 

@@ -11,7 +11,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from ..scene.camera import camera_center
+from wgs.scene.camera import camera_center
+
 from .meshes import Mesh
 
 NEAR = 1e-3

@@ -19,11 +19,12 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..errors import InputError
-from ..models.silhouette_net import SilhouetteNet, SilhouetteNetConfig
-from ..shape.features import predict_batch, silhouette_inputs, to_work_size
-from ..shape.scores import silhouette_scores
-from ..training.loop import FitState, MaskTrainConfig, fit
+from wgs.errors import InputError
+from wgs.models.silhouette_net import SilhouetteNet, SilhouetteNetConfig
+from wgs.shape.features import predict_batch, silhouette_inputs, to_work_size
+from wgs.shape.scores import silhouette_scores
+from wgs.training.loop import FitState, MaskTrainConfig, fit
+
 from .train import growing_subsets
 
 
@@ -57,7 +58,9 @@ def load_shape_pairs(pairs_dir: Path, work_size: int) -> dict[str, Any]:
             obj.append(torch.full((len(rgb),), len(names)))
             names.append(f.stem)
     if not xs:
-        raise InputError("no pair files with hull channels (rebuild them with `python -m wgs.prior pairs`)", pairs_dir)
+        raise InputError(
+            "no pair files with hull channels (rebuild them with `python -m tools.prior pairs`)", pairs_dir
+        )
     return {
         "inputs": torch.cat(xs),
         "target": torch.cat(ys),

@@ -17,9 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
-from ..io.images import write_png
-from ..progress import log
+from wgs.errors import InputError
+from wgs.io.images import write_png
+from wgs.progress import log
+
 from .meshes import Mesh, load_mesh, normalise, y_up_to_z_up
 from .procedural import kitbash_shape, random_rotation, random_shape, random_texture
 from .raster import render_rgba
@@ -169,7 +170,7 @@ def look_at_c2w(eye: np.ndarray) -> np.ndarray:
 
 
 def c2w_to_viewmat(c2w: np.ndarray) -> np.ndarray:
-    from ..scene.convention import c2w_opengl_to_w2c_opencv
+    from wgs.scene.convention import c2w_opengl_to_w2c_opencv
 
     return c2w_opengl_to_w2c_opencv(c2w)
 

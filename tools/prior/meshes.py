@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputError
+from wgs.errors import InputError
 
 
 @dataclass

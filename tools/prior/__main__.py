@@ -1,9 +1,9 @@
-"""`python -m wgs.prior corpus|pairs|train`: rebuild the repair prior from fetched repositories.
+"""`python -m tools.prior corpus|pairs|train`: rebuild the repair prior from fetched repositories.
 
-    python -m wgs.prior corpus --mirror /work/.mirror      # extract snapshots, render objects
-    python -m wgs.prior pairs --budget-min 60              # coarse runs -> (render, ref) pairs
-    python -m wgs.prior train                              # D and U -> wgs/weights/
-    python -m wgs.prior volume-pairs && python -m wgs.prior train-volume --exclude '*cow*'   # V
+    python -m tools.prior corpus --mirror /work/.mirror      # extract snapshots, render objects
+    python -m tools.prior pairs --budget-min 60              # coarse runs -> (render, ref) pairs
+    python -m tools.prior train                              # D and U -> wgs/weights/
+    python -m tools.prior volume-pairs && python -m tools.prior train-volume --exclude '*cow*'   # V
 
 Everything is resumable and lives in the cache folder (default ~/.cache/wgs-prior, or $WGS_PRIOR_CACHE).
 """
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import click
 
-from ..weights import WEIGHTS, WEIGHTS_S, WEIGHTS_V
+from wgs.weights import WEIGHTS, WEIGHTS_S, WEIGHTS_V
 
 DEFAULT_CACHE = Path(os.environ.get("WGS_PRIOR_CACHE", Path.home() / ".cache" / "wgs-prior"))
 
@@ -219,7 +219,8 @@ def train_shape(
     """Train the silhouette model S on the pairs' hull channels (held-out objects measure it)."""
     import json
 
-    from ..models.storage import save_model
+    from wgs.models.storage import save_model
+
     from .train_shape import ShapeTrainConfig, load_shape_pairs, train_silhouette
 
     cfg = ShapeTrainConfig()
@@ -244,7 +245,7 @@ def train_shape(
                 "objects": data["names"],
                 "holdout_objects": held,
                 "curve": curve,
-                "command": f"python -m wgs.prior --cache CACHE train-shape --steps {cfg.steps} "
+                "command": f"python -m tools.prior --cache CACHE train-shape --steps {cfg.steps} "
                 f"--work-size {cfg.net.work_size} --levels {cfg.net.levels}",
             },
             indent=1,
@@ -301,7 +302,8 @@ def train_volume_cmd(cache: Path, out: Path | None, steps: int | None, exclude: 
     """Train the volume model V on the volume pairs (held-out objects measure it)."""
     import json
 
-    from ..models.storage import save_model
+    from wgs.models.storage import save_model
+
     from .train_volume import VolumeTrainConfig, load_volume_pairs, train_volume
 
     cfg = VolumeTrainConfig()
@@ -320,7 +322,7 @@ def train_volume_cmd(cache: Path, out: Path | None, steps: int | None, exclude: 
                 "objects": data["names"],
                 "excluded": list(exclude),
                 "curve": curve,
-                "command": f"python -m wgs.prior --cache CACHE volume-pairs && python -m wgs.prior --cache CACHE "
+                "command": f"python -m tools.prior --cache CACHE volume-pairs && python -m tools.prior --cache CACHE "
                 f"train-volume --steps {cfg.steps} {excluded}".strip(),
             },
             indent=1,

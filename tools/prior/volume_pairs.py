@@ -16,14 +16,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..config import resolve
-from ..errors import InputError
-from ..progress import log
-from ..scene.dataset import load_prepared
-from ..scene.splits import farthest_views
-from ..shape.hull import visual_hull_grid
-from ..shape.volume import cube_around, volume_inputs, volume_target
-from ..workspace import Workspace
+from wgs.config import resolve
+from wgs.errors import InputError
+from wgs.progress import log
+from wgs.scene.dataset import load_prepared
+from wgs.scene.splits import farthest_views
+from wgs.shape.hull import visual_hull_grid
+from wgs.shape.volume import cube_around, volume_inputs, volume_target
+from wgs.workspace import Workspace
+
 from .pairs import in_processes, save_object_pairs
 
 VIEW_COUNTS = (4, 4, 4, 3, 5, 6, 4, 4)  # cycled over an object's subsets: mostly 4, as the product default
@@ -43,7 +44,7 @@ def view_subsets(centers: np.ndarray, forwards: np.ndarray, subsets: int, rng: n
 
 
 def object_volume_pairs(scene_dir: Path, work: Path, subsets: int, resolution: int) -> dict[str, np.ndarray]:
-    from ..stages import StageEnv, run_stage
+    from wgs.stages import StageEnv, run_stage
 
     ws = Workspace(work)
     run_stage("scene", ws, resolve("prepare", cli={}), StageEnv(torch.device("cpu"), 0, scene_dir=scene_dir))

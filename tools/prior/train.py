@@ -19,16 +19,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..errors import InputError
-from ..io.checkpoint import UnreadableCheckpoint, read_checkpoint, write_checkpoint
-from ..models.data import random_crops, to_model
-from ..models.denoiser_meta import DenoiserMeta
-from ..models.hf_unet import HFUNet, HFUNetConfig
-from ..models.ll_denoiser import LLDenoiser, LLDenoiserConfig
-from ..training.denoiser import psnr_model_space, train_denoiser
-from ..training.hf import identity_l1, train_hf
-from ..training.loop import FitPlan, FitState
-from ..wavelet.haar import dwt2
+from wgs.errors import InputError
+from wgs.io.checkpoint import UnreadableCheckpoint, read_checkpoint, write_checkpoint
+from wgs.models.data import random_crops, to_model
+from wgs.models.denoiser_meta import DenoiserMeta
+from wgs.models.hf_unet import HFUNet, HFUNetConfig
+from wgs.models.ll_denoiser import LLDenoiser, LLDenoiserConfig
+from wgs.training.denoiser import psnr_model_space, train_denoiser
+from wgs.training.hf import identity_l1, train_hf
+from wgs.training.loop import FitPlan, FitState
+from wgs.wavelet.haar import dwt2
 
 
 @dataclass
@@ -289,9 +289,9 @@ def train_prior(
     """Train D and U on a pack; write out/D, out/U (config.json + model.safetensors), provenance.json.
     init: a prior folder (D/, U/, provenance.json) to start from; its provenance is kept in ours.
     state_dir: where D's training state is kept between runs (a rerun continues)."""
-    from ..models.hf_unet import HFUNet
-    from ..models.ll_denoiser import LLDenoiser
-    from ..models.storage import load_model_of, save_model
+    from wgs.models.hf_unet import HFUNet
+    from wgs.models.ll_denoiser import LLDenoiser
+    from wgs.models.storage import load_model_of, save_model
 
     data = load_pack(pack)
     torch.manual_seed(cfg.seed)

@@ -20,15 +20,15 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..config import resolve
-from ..gaussians.splats import load_checkpoint
-from ..gaussians.trainer import render_frame
-from ..progress import log
-from ..scene.dataset import composite, load_prepared
-from ..shape.features import hull_channels
-from ..shape.hull import visual_hull_grid
-from ..threads import map_in_processes
-from ..workspace import Workspace
+from wgs.config import resolve
+from wgs.gaussians.splats import load_checkpoint
+from wgs.gaussians.trainer import render_frame
+from wgs.progress import log
+from wgs.scene.dataset import composite, load_prepared
+from wgs.shape.features import hull_channels
+from wgs.shape.hull import visual_hull_grid
+from wgs.threads import map_in_processes
+from wgs.workspace import Workspace
 
 SPARSITIES = (4, 6, 4, 3, 4, 5)  # cycled over objects: mostly 4 views, as the product default
 
@@ -40,7 +40,7 @@ def to_u8(x: torch.Tensor | np.ndarray) -> np.ndarray:
 def object_pairs(scene_dir: Path, work: Path, views: int, coarse_overrides: dict, seed: int = 0) -> dict:
     """prepare + coarse on `views` views of the scene, then G_c at every test pose -> arrays.
     One coarse model per object (the product's ensemble would cost ten for the same pairs)."""
-    from ..stages import StageEnv, run_stage
+    from wgs.stages import StageEnv, run_stage
 
     ws = Workspace(work)
     t0 = time.perf_counter()

@@ -18,9 +18,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..errors import InputError
-from ..models.volume_net import VolumeNet, VolumeNetConfig
-from ..training.loop import FitState, MaskTrainConfig, fit
+from wgs.errors import InputError
+from wgs.models.volume_net import VolumeNet, VolumeNetConfig
+from wgs.training.loop import FitState, MaskTrainConfig, fit
 
 
 @dataclass
@@ -42,7 +42,7 @@ def load_volume_pairs(pairs_dir: Path, exclude: tuple[str, ...] = ()) -> dict:
             hold.append(torch.full((len(z["x"]),), bool(z["holdout"])))
         names.append(f.stem)
     if not xs:
-        raise InputError("no volume pairs (build them with `python -m wgs.prior volume-pairs`)", pairs_dir)
+        raise InputError("no volume pairs (build them with `python -m tools.prior volume-pairs`)", pairs_dir)
     return {"x": torch.cat(xs), "y": torch.cat(ys), "holdout": torch.cat(hold), "names": names}
 
 
