@@ -86,8 +86,8 @@ stress: $(VENV)/.installed
 
 # what CI runs before the tests: lint, formatting, types (the scope is in pyproject.toml, [tool.mypy])
 lint: $(VENV)/.installed
-	$(BIN)/ruff check wgs tools tests examples docs/experiments
-	$(BIN)/ruff format --check wgs tools tests examples docs/experiments
+	$(BIN)/ruff check wgs tools tests examples
+	$(BIN)/ruff format --check wgs tools tests examples
 	$(BIN)/mypy
 
 clean:

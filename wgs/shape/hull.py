@@ -56,7 +56,7 @@ def pixel_lookup(camera: Camera, points: torch.Tensor, near: float = 0.01) -> tu
 #   photo sees is then object, out to the grid's extent.
 # - "background": the photo cuts everything it did not show.
 OFF_FRAME = ("abstain", "object", "background")
-OFF_FRAME_RULE = "abstain"  # the rule every hull and vote takes (docs/experiments/xp_off_frame.py compares them)
+OFF_FRAME_RULE = "abstain"  # the rule every hull and vote takes (tools/experiments/xp_off_frame.py compares them)
 # under "abstain" a point needs this many masks that hold it (fewer where fewer views are asked for):
 # two views bound a point along a long wedge only, which a tolerant hull fills (generated close-ups:
 # tolerant hull 2.9x the true hull's volume with 2, 1.8x with 3; docs/shape.md)

@@ -3,7 +3,7 @@ true cameras, after a similarity alignment: generated photos (tests/photo_scene.
 at azimuth steps, and NeRF-Synthetic lego (400x400, measuring only) along chains of views about a
 given angle apart.
 
-    python docs/experiments/xp_sparse_pose.py [--lego ../shared/data/lego] [--steps 30 45 60 75]
+    python tools/experiments/xp_sparse_pose.py [--lego ../shared/data/lego] [--steps 30 45 60 75]
 """
 
 import argparse

@@ -7,7 +7,7 @@ all around that see the whole object, the strict hull's silhouette at the test v
 `--train` G_c's test PSNR (one coarse model per rule, the fast preset's coarse stage). No mirror
 views: whether a mirror plane is taken depends on the hull too, and would decide G_c alone.
 
-    python docs/experiments/xp_off_frame.py [--seeds 0,1,2,3] [--arc 180] [--cache ~/.cache/wgs-xp/off_frame] [--train]
+    python tools/experiments/xp_off_frame.py [--seeds 0,1,2,3] [--arc 180] [--cache ~/.cache/wgs-xp/off_frame] [--train]
 
 --arc: the training photos' spread of azimuths in degrees (make_scene's CLOSE_UP_ARC by default).
 """

@@ -2,7 +2,7 @@
 points agree as well as at the same point seen by two photos? Points are the strict hull's first
 hits (photos and their mirror images), a point counts where another photo's hull depth reaches it.
 
-    python docs/experiments/xp_colour_symmetry.py WS   # a workspace after `wgs prepare` with the mirror used
+    python tools/experiments/xp_colour_symmetry.py WS   # a workspace after `wgs prepare` with the mirror used
 """
 
 import sys

@@ -1,7 +1,7 @@
 """CUDA check: the torch reference rasterizer on CUDA against the CPU (float64), and the speed of a
 200x200 render (forward + backward) on CUDA (torch reference) and on the CPU (numba).
 
-    python docs/experiments/xp_cuda_parity.py
+    python tools/experiments/xp_cuda_parity.py
 """
 
 import time

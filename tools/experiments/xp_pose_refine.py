@@ -10,7 +10,7 @@ other photos leaves out (the check `wgs prepare` makes of posed photos). With `-
 photos with the corrected cameras (last `--lr`) become a scene of their own, `wgs all` trains on
 it, and it is scored as `xp_unposed_run.py` scores its runs.
 
-    python docs/experiments/xp_pose_refine.py --out DIR [--lr 1e-3 3e-4] [--half-size 0.3] [--run]
+    python tools/experiments/xp_pose_refine.py --out DIR [--lr 1e-3 3e-4] [--half-size 0.3] [--run]
 
 `--lr 0 --run` is the control: the same scene path with the cameras as posed.
 """

@@ -9,7 +9,7 @@ its 200 test views) and a generated object (tests/photo_scene.py) at the same sp
 views around it as test views. Runs go to `--out` (a cache outside the repository) and are kept:
 a second call scores them again without training.
 
-    python docs/experiments/xp_unposed_run.py [--lego ../shared/data/lego] [--step 45] [--out DIR]
+    python tools/experiments/xp_unposed_run.py [--lego ../shared/data/lego] [--step 45] [--out DIR]
 """
 
 import argparse
