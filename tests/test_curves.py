@@ -7,10 +7,9 @@ import time
 import torch
 from conftest import ring_w2c
 
-from wgs.config import TrainConfig
 from wgs.curves import probe_views
 from wgs.gaussians.splats import create_splats
-from wgs.gaussians.trainer import Probe, train_gaussians
+from wgs.gaussians.trainer import Probe, TrainConfig, train_gaussians
 from wgs.scene.dataset import Frame
 
 

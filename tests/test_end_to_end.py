@@ -37,7 +37,7 @@ CONTRACT = [
     "6_eval/report.html",
     "6_eval/turntable.gif",
 ]
-STAGES = ["scene", "coarse", "mask_data", "finetune", "repair", "fine", "eval"]
+STAGES = ["prepare", "coarse", "mask_data", "finetune", "repair", "fine", "eval"]
 
 
 def run_all(cfg, ws, scene, *extra):
@@ -76,7 +76,7 @@ def test_workspace_contract_and_results(tiny):
     assert res["lpips"] is None and "not found" in res["lpips_unavailable"]
     per = json.loads((ws.root / "6_eval/per_view.json").read_text())
     assert len(per["psnr"]) == 5
-    assert set(res["stage_times_s"]) == {"scene", "coarse", "mask_data", "finetune", "repair", "fine"}
+    assert set(res["stage_times_s"]) == {"prepare", "coarse", "mask_data", "finetune", "repair", "fine"}
     assert "PSNR" in output and "report" in output
     report = (ws.root / "6_eval/report.md").read_text()
     page = (ws.root / "6_eval/report.html").read_text()
@@ -152,7 +152,7 @@ def test_baseline_plain_3dgs_for_the_same_time(tiny, tmp_path):
 
 
 def test_repair_gain_at_test_poses_spread_over_them(tiny, tmp_path):
-    from wgs.stages.s6_eval.scoring import spread
+    from wgs.stages.eval.scoring import spread
 
     assert spread(list(range(200)), 50) == list(range(0, 200, 4))
     assert spread(list(range(7)), 3) == [0, 2, 4]
@@ -395,7 +395,7 @@ def test_a_carving_model_carves_the_hull_and_fine_starts_there(tiny, tmp_path, k
     if kind == "V":  # the object's own check ran (such a V is near harmless after the rule: test_shape)
         assert counts["used"] and 0 < counts["leave_one_out_iou_carved"] <= 1 and 0 < counts["leave_one_out_iou"] <= 1
     assert ws.manifest("fine")["start"] == "carved hull"
-    prepared = load_prepared(ws.stage_dir("scene"))
+    prepared = load_prepared(ws.stage_dir("prepare"))
     carved = load_grid(ws.output("repair", "carved_hull"))
     full = visual_hull_grid(prepared.train, carved.resolution, tolerate=0)
     for f in prepared.train:
@@ -424,18 +424,18 @@ def test_the_mirror_check_and_the_carved_hull_are_reported(mirrored):
     """prepare looked for the object's mirror plane and kept its check; the photos' mirror images
     are training views that teach the outline only (no pairs, no U views); eval scores the carved
     hull at the test views beside the strict one and names the mirror's check."""
-    from wgs.config import PrepareConfig
     from wgs.scene.dataset import load_prepared
+    from wgs.stages.prepare.settings import PrepareConfig
 
     ws = mirrored
-    summary = ws.manifest("scene")["summary"]
+    summary = ws.manifest("prepare")["summary"]
     mirror = summary["mirror"]
     assert len(mirror["plane"]["normal"]) == 3 and 0 < mirror["leave_one_out_iou"] <= 1
     gain = mirror["leave_one_out_iou_mirrored"] - mirror["leave_one_out_iou"]
-    cfg = PrepareConfig(**ws.manifest("scene")["config"])
+    cfg = PrepareConfig(**ws.manifest("prepare")["config"])
     assert mirror["used"] == (gain >= cfg.mirror_min_gain and mirror["missed"] <= cfg.mirror_max_missed)
     assert mirror["used"], mirror
-    train = load_prepared(ws.stage_dir("scene")).train
+    train = load_prepared(ws.stage_dir("prepare")).train
     assert len(train) == 2 * summary["num_train"]
     assert sum(f.name.endswith(".mirror.png") for f in train) == summary["num_train"]
     assert mirror["views"] == "outline" and all(f.shows_colour != f.name.endswith(".mirror.png") for f in train)

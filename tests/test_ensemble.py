@@ -10,7 +10,7 @@ from wgs.gaussians.trainer import render_frame
 from wgs.models.denoiser_meta import DenoiserMeta
 from wgs.models.repair import Repairer
 from wgs.scene.dataset import load_prepared
-from wgs.stages import s1_coarse
+from wgs.stages.coarse import run as coarse_run
 from wgs.stages.shared import coarse_members, ensemble_repair, member_file
 from wgs.workspace import Workspace
 
@@ -28,7 +28,7 @@ def test_members_are_trained_from_other_seeds_and_averaged(blender_scene, tmp_pa
     invoke("-w", ws.root, "prepare", blender_scene)
     invoke("-w", ws.root, "coarse", *TINY, "--ensemble", "3")
     assert ws.manifest("coarse")["ensemble"] == 3 and len(ws.manifest("coarse")["member_seconds"]) == 2
-    scene = load_prepared(ws.stage_dir("scene"))
+    scene = load_prepared(ws.stage_dir("prepare"))
     members = coarse_members(ws, scene, torch.device("cpu"))
     assert len(members) == 3
     g_c = load_checkpoint(ws.output("coarse", "model"), scene.norm)[0]
@@ -55,7 +55,7 @@ def test_one_member_is_g_c_alone(blender_scene, tmp_path):
     invoke("-w", ws.root, "coarse", *TINY, "--ensemble", "1")
     assert ws.manifest("coarse")["ensemble"] == 1
     assert not (ws.stage_dir("coarse") / "members").exists()
-    assert len(coarse_members(ws, load_prepared(ws.stage_dir("scene")), torch.device("cpu"))) == 1
+    assert len(coarse_members(ws, load_prepared(ws.stage_dir("prepare")), torch.device("cpu"))) == 1
 
 
 def test_ensemble_below_one_is_refused(blender_scene, tmp_path):
@@ -75,7 +75,7 @@ def test_models_side_by_side_equal_the_one_thread_ones_in_order(blender_scene, t
     for ws in (serial, side):
         invoke("-w", ws.root, "prepare", blender_scene)
     invoke("--threads", "1", "-w", serial.root, "coarse", *TINY, "--ensemble", "3")
-    monkeypatch.setattr(s1_coarse, "side_by_side", lambda models, iterations, pixels, on_cpu: 2)
+    monkeypatch.setattr(coarse_run, "side_by_side", lambda models, iterations, pixels, on_cpu: 2)
     invoke("-w", side.root, "coarse", *TINY, "--ensemble", "3")  # (also resets the thread count)
     assert serial.manifest("coarse")["side_by_side"] == 1 and side.manifest("coarse")["side_by_side"] == 2
     for parts in (("model",), ("members", member_file(1)), ("members", member_file(2))):

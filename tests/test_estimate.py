@@ -7,31 +7,35 @@ import pytest
 import torch
 from conftest import expect_error, run_cli
 
-from wgs.config import GPU_MAX_SIZE, STAGES, load_config_file, resolve, time_boxed
+from wgs.config import STAGES, load_config_file, resolve
+from wgs.cost import (
+    EXPECTED_PLATEAU,
+    FIT_MASK_SHARE,
+    GPU_MAX_SIZE,
+    MASK_SHARE_SLOPE,
+    MIN_SHARE_FACTOR,
+    NO_MASKS_FACTOR,
+    Calibration,
+    SceneFacts,
+    cover_factor,
+    expected_iterations,
+    time_boxed,
+)
 from wgs.errors import InputError
 from wgs.estimate import (
     CALIBRATION_MAX_AGE_S,
-    EXPECTED_PLATEAU,
-    FIT_MASK_SHARE,
-    FIXED_STEPS,
-    MASK_SHARE_SLOPE,
-    MIN_SHARE_FACTOR,
     MIN_SIZE,
-    NO_MASKS_FACTOR,
-    Calibration,
     RunTiming,
-    SceneFacts,
     budget_plan,
     cached_calibration,
     calibrate,
     choose_downscale,
-    cover_factor,
-    expected_iterations,
+    costs,
     parse_duration,
-    pilots_s,
     stage_seconds,
 )
 from wgs.scene.prepare import downscale_for
+from wgs.stages.coarse.settings import pilots_s
 
 # about this 2-core CPU's figures (a calibration made here)
 CAL = Calibration(
@@ -94,16 +98,19 @@ def test_the_held_out_rule_is_modelled_as_its_margin_times_the_expected_plateau_
 
 
 def test_the_training_stages_grow_with_the_share_of_the_frame_the_object_covers():
-    """The share lego's 4 views have (where FACTOR was fitted) leaves the model as it was; a
+    """The share lego's 4 views have (where the stages' factors were fitted) leaves the model as it was; a
     close-up's share lengthens the training loops only; no masks is its own factor; a tiny object
     is not modelled below MIN_SHARE_FACTOR."""
     cfgs = configs()
     at_fit = stage_seconds(CAL, cfgs, SceneFacts(128, 128, 4, 8))
     assert stage_seconds(CAL, cfgs, SceneFacts(128, 128, 4, 8, mask_share=FIT_MASK_SHARE)) == at_fit
     close = stage_seconds(CAL, cfgs, SceneFacts(128, 128, 4, 8, mask_share=0.8))
+    fixed = {
+        t: cost.fixed_steps * CAL.d_step_s for t, (cost, _) in costs(CAL, cfgs, SceneFacts(128, 128, 4, 8)).items()
+    }
     for t in ("coarse", "mask_data", "fine"):
-        work = at_fit[t] - FIXED_STEPS[t] * CAL.d_step_s
-        grown = close[t] - FIXED_STEPS[t] * CAL.d_step_s
+        work = at_fit[t] - fixed[t]
+        grown = close[t] - fixed[t]
         assert grown / work == pytest.approx(1 + MASK_SHARE_SLOPE * (0.8 - FIT_MASK_SHARE), rel=0.01), t
     for t in ("finetune", "repair", "eval"):
         assert close[t] == at_fit[t]
@@ -204,12 +211,12 @@ def test_all_table_in_config_file(tmp_path):
 
 def test_working_size_line_and_gpu_rule(monkeypatch):
     monkeypatch.setattr("wgs.estimate.cached_calibration", lambda device: CAL)
-    k, line = RunTiming(torch.device("cpu"), configs())(4000, 3000, 4, 8)
+    k, line = RunTiming(torch.device("cpu"), configs())(4000, 3000, 4, 8, True)
     assert 4000 // k <= 400 and line.startswith(f"working size: {4000 // k}x{3000 // k}")
     assert "--max-size" in line
-    k, line = RunTiming(torch.device("cpu"), configs())(64, 64, 4, 8)
+    k, line = RunTiming(torch.device("cpu"), configs())(64, 64, 4, 8, True)
     assert k == 1 and "own size" in line
-    k, line = RunTiming(torch.device("cuda"), configs())(4000, 3000, 4, 8)
+    k, line = RunTiming(torch.device("cuda"), configs())(4000, 3000, 4, 8, True)
     assert k == 3 and "1600" in line
 
 

@@ -7,12 +7,12 @@ import pytest
 import torch
 from conftest import ring_w2c
 
-from wgs.config import FinetuneConfig, TrainConfig
 from wgs.errors import WgsError
 from wgs.gaussians.splats import create_splats
-from wgs.gaussians.trainer import train_gaussians
+from wgs.gaussians.trainer import TrainConfig, train_gaussians
 from wgs.resume import Checkpointer
 from wgs.scene.dataset import Frame
+from wgs.stages.finetune.settings import FinetuneConfig
 from wgs.training.per_object import train_scratch_d
 
 

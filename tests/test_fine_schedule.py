@@ -4,9 +4,10 @@ from types import SimpleNamespace
 
 import pytest
 
-from wgs.config import FineConfig, resolve
+from wgs.config import resolve
 from wgs.errors import InputError
-from wgs.stages.s5_fine import pseudo_schedule, start_of
+from wgs.stages.fine.run import pseudo_schedule, start_of
+from wgs.stages.fine.settings import FineConfig
 
 
 def test_default_keeps_pseudo_views_to_the_end():

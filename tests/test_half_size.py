@@ -5,8 +5,8 @@ import torch
 from conftest import ring_w2c
 
 import wgs.gaussians.trainer as trainer
-from wgs.config import TrainConfig
 from wgs.gaussians.splats import create_splats
+from wgs.gaussians.trainer import TrainConfig
 from wgs.scene.dataset import Frame, halved
 from wgs.shape.hull import project_points
 

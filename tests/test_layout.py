@@ -2,6 +2,7 @@
 each other."""
 
 import ast
+import fnmatch
 import re
 from pathlib import Path
 
@@ -48,19 +49,41 @@ TOOLS = WGS.parent / "tools"  # benchmarks and the kill loop: beside the package
 
 
 def import_graph(with_tools: bool = False) -> dict[str, set[str]]:
-    """{module: the modules of wgs (and, `with_tools`, of tools/) it imports}."""
+    """{module: the modules of wgs (and, `with_tools`, of tools/) it imports}, less each stage's
+    settings reaching its own run module on first use (`run_on_first_use`)."""
     paths = [*WGS.rglob("*.py"), *(TOOLS.rglob("*.py") if with_tools else ())]
     files = {module_name(p): p for p in paths}
-    return {m: imports_of(p, set(files)) for m, p in files.items()}
+    return {m: imports_of(p, set(files)) - run_on_first_use(m, p) for m, p in files.items()}
+
+
+def run_on_first_use(module: str, path: Path) -> set[str]:
+    """A stage's settings (config layer) name its run function (stages layer) in its `Stage` row
+    through a `run` function that imports the stage's own `run` module when called, and so loads
+    the library only when the stage runs: that one import, inside that function, is the one edge
+    that points up (docs/architecture.md)."""
+    if not (module.startswith("wgs.stages.") and module.endswith(".settings")):
+        return set()
+    own_run = module.removesuffix(".settings") + ".run"
+    tree = ast.parse(path.read_text())
+    for node in tree.body:
+        assert not (isinstance(node, ast.ImportFrom) and node.module == "run"), f"{module}: run imported on top"
+    inside = [n for f in tree.body if isinstance(f, ast.FunctionDef) and f.name == "run" for n in ast.walk(f)]
+    names = [
+        a.name for n in inside if isinstance(n, ast.ImportFrom) and n.level == 1 and n.module == "run" for a in n.names
+    ]
+    return {own_run, *(f"{own_run}.{name}" for name in names)} if names else set()
 
 
 def test_no_stage_imports_another_stage():
+    """A stage's modules import another stage's settings at most (the config layer), never its run."""
     graph = import_graph()
     stage_of = {m: m.split(".")[2] for m in graph if m.startswith("wgs.stages.") and m.count(".") >= 2}
-    stages = set(stage_of.values()) - {"shared"}
-    assert {"s1_coarse", "s6_eval", "render_views"} <= stages
+    stages = {name for m, name in stage_of.items() if m.count(".") >= 3}  # the packages: stages/<name>/
+    assert {"prepare", "coarse", "eval", "baseline"} <= stages
     for m, stage in stage_of.items():
-        others = {stage_of[d] for d in graph[m] if d in stage_of} & stages - {stage}
+        if stage not in stages:
+            continue
+        others = {stage_of[d] for d in graph[m] if d in stage_of and not d.endswith(".settings")} & stages - {stage}
         assert not others, f"{m} imports {sorted(others)}: move what they share to stages/shared.py"
 
 
@@ -89,8 +112,16 @@ LAYERS = page_layers()
 
 
 def layer_of(module: str) -> int | None:
-    top = module.split(".")[1] if "." in module else "__init__"  # "wgs" itself: its __init__
-    return next((i for i, (_, names) in enumerate(LAYERS) if top in names), None)
+    """The layer whose row names the module: by its path (`stages/*/settings`) before its top-level
+    name (`stages`)."""
+    path = "/".join(module.split(".")[1:]) or "__init__"  # "wgs" itself: its __init__
+    for by_path in (True, False):
+        for i, (_, names) in enumerate(LAYERS):
+            if by_path and any("/" in n and fnmatch.fnmatchcase(path, n) for n in names):
+                return i
+            if not by_path and path.split("/")[0] in names:
+                return i
+    return None
 
 
 def test_the_page_names_the_layers_and_every_module_is_in_one():
@@ -110,24 +141,33 @@ def test_imports_point_down():
         above = sorted(d for d in deps if layer_of(d) > mine)
         assert not above, f"{m} ({LAYERS[mine][0]}) imports {above}, above its layer"
     assert layer_of("wgs.scene.prepare") == 1 and layer_of("wgs.estimate") == 4 and layer_of("wgs.batch") == 6
+    assert layer_of("wgs.stages.coarse.settings") == layer_of("wgs.stages.registry") == layer_of("wgs.config") == 2
+    assert layer_of("wgs.stages.coarse.run") == layer_of("wgs.stages.shared") == layer_of("wgs.stages") == 5
 
 
 def test_every_registry_stage_runs_through_one_signature():
+    """Each stage's row names its run function (not a string) with one signature, and the
+    function it calls is its own run module's `run_<name>`, of the same signature."""
+    import importlib
     import inspect
 
-    from wgs.config import REGISTRY
-    from wgs.stages import stage_runner
+    from wgs.stages.registry import REGISTRY
 
     for stage in REGISTRY:
-        params = list(inspect.signature(stage_runner(stage.name)).parameters)
-        assert params == ["ws", "cfg", "env", "force"], f"{stage.runner}: {params}"
+        assert stage.run.__module__ == f"wgs.stages.{stage.name}.settings", stage.name
+        params = list(inspect.signature(stage.run).parameters)
+        assert params == ["ws", "cfg", "env", "force"], f"{stage.name}: {params}"
+        own = getattr(importlib.import_module(f"wgs.stages.{stage.name}.run"), f"run_{stage.name}")
+        assert list(inspect.signature(own).parameters) == params, stage.name
 
 
 def test_orchestration_spells_no_stage_order():
-    # pipeline.py and ablation.py loop over the registry; no stage module is imported by name there
-    for rel in ("pipeline.py", "ablation.py"):
-        src = (WGS / rel).read_text()
-        assert "wgs.stages.s" not in src and ".stages.s" not in src.replace(".stages.shared", ""), rel
+    # orchestration, the estimate, the workspace and the commands loop over the registry: no stage's
+    # own module is imported by name there
+    graph = import_graph()
+    for module in ("wgs.pipeline", "wgs.ablation", "wgs.estimate", "wgs.workspace", "wgs.cli.stages", "wgs.config"):
+        named = {d for d in graph[module] if d.startswith("wgs.stages.") and d.count(".") >= 3}
+        assert not named, f"{module} imports {sorted(named)}: go through wgs.stages.registry"
 
 
 def test_training_sits_between_the_networks_and_their_callers():
@@ -139,10 +179,10 @@ def test_training_sits_between_the_networks_and_their_callers():
         if m.startswith("wgs.models"):
             assert not {d for d in deps if d.startswith("wgs.training")}, f"{m} imports the training layer"
         if m.startswith("wgs.training"):
-            upper = {d for d in deps if d.split(".")[1] in ("stages", "prior", "workspace", "pipeline")}
+            upper = {d for d in deps if d.startswith("tools.") or layer_of(d) > layer_of(m)}
             assert not upper, f"{m} imports {sorted(upper)}"
     assert "wgs.resume" not in graph["wgs.training.loop"]
-    assert "wgs.training.per_object" in graph["wgs.stages.s3_finetune"]
+    assert "wgs.training.per_object" in graph["wgs.stages.finetune.run"]
     assert "wgs.training.loop" in graph["wgs.training.denoiser"]
     assert "wgs.training.denoiser" in graph["tools.prior.train"]
 
@@ -193,16 +233,24 @@ def test_the_stages_are_listed_once():
     import re
 
     from wgs.cli import cli
-    from wgs.config import METHOD, REGISTRY
+    from wgs.stages.registry import METHOD, REGISTRY
 
     names = [s.name for s in REGISTRY]
     assert METHOD[-1] == "fine" and "eval" not in METHOD and "baseline" not in METHOD
     for i, s in enumerate(REGISTRY):
         assert set(s.upstream) <= set(names[:i]), f"{s.name} reads a stage that runs after it"
         assert s.command in cli.commands
-    folders = re.compile("|".join(re.escape(f'"{s.folder}"') for s in REGISTRY if s.folder != s.name))
+    # a folder named like its stage is no second fact; prepare's "scene" is also the word for the
+    # scene in records (run.json, results.json): there only a path joined onto it counts
+    folders = re.compile(
+        "|".join(
+            re.escape(f'"{s.folder}"') if s.folder != "scene" else r'/\s*"scene"\s*/'
+            for s in REGISTRY
+            if s.folder != s.name
+        )
+    )
     for p in WGS.rglob("*.py"):
-        if p.name != "config.py":
+        if p.name != "settings.py":
             assert not folders.search(p.read_text()), f"{p.name} spells a stage folder: use STAGE_DIRS"
 
 
@@ -216,8 +264,9 @@ def test_cli_options_are_the_config_fields():
     import click
 
     from wgs.cli import cli
-    from wgs.config import CHOICES, RANGES, REGISTRY, STAGES
+    from wgs.config import CHOICES, RANGES, STAGES
     from wgs.fields import facts
+    from wgs.stages.registry import REGISTRY
 
     shared = {"force", "preset", "ws_override", "scene", "budget", "force_repair", "baseline", "help"}
 
@@ -312,3 +361,43 @@ def test_every_option_of_every_command_is_a_fields_option():
                     assert tuple(param.type.choices) == facts(c, name)["choices"], (where, name)
             seen += 1
     assert seen > 100 and len(commands) >= 16
+
+
+def stage_own_fields() -> dict[str, set[str]]:
+    """Each stage's own settings fields: those its settings class declares, not a library
+    parameter class it extends (`TrainConfig`, `MaskParams`, ...)."""
+    from wgs.stages.registry import REGISTRY
+
+    out = {}
+    for s in REGISTRY:
+        inherited = {f for base in s.settings.__mro__[1:] for f in getattr(base, "__dataclass_fields__", {})}
+        out[s.name] = set(s.settings.__dataclass_fields__) - inherited
+    return out
+
+
+def strings_and_attributes(path: Path) -> tuple[set[str], set[str]]:
+    """The string constants a file holds and the attribute names it reads."""
+    tree = ast.parse(path.read_text())
+    strings = {n.value for n in ast.walk(tree) if isinstance(n, ast.Constant) and isinstance(n.value, str)}
+    return strings, {n.attr for n in ast.walk(tree) if isinstance(n, ast.Attribute)}
+
+
+def test_a_stages_options_and_cost_are_stated_in_its_home():
+    """The commands take a stage's options from its `Stage` row (`options`, `all_options`), and the
+    estimate takes its cost from the row's `cost`: no command module names a stage's option, and
+    neither the estimate nor the shared cost pieces name a stage or read a stage's own setting."""
+    from wgs.stages.registry import REGISTRY
+
+    options = {o for s in REGISTRY for o in (*s.options, *s.all_options)}
+    assert {"ensemble", "views", "strategy", "lpips_weights"} <= options
+    for p in sorted((WGS / "cli").glob("*.py")):
+        named = strings_and_attributes(p)[0] & options
+        assert not named, f"{p.relative_to(WGS.parent)} lists options of a stage: {sorted(named)} (Stage.options)"
+    own = set().union(*stage_own_fields().values())
+    assert {"ensemble", "rounds", "num_views", "strategy", "prior_steps"} <= own
+    for rel in ("estimate.py", "cost.py"):
+        strings, attributes = strings_and_attributes(WGS / rel)
+        assert not strings & {s.name for s in REGISTRY}, (
+            f"{rel} names a stage: {sorted(strings & {s.name for s in REGISTRY})}"
+        )
+        assert not attributes & own, f"{rel} reads a stage's own setting: {sorted(attributes & own)} (Stage.cost)"

@@ -63,7 +63,7 @@ def test_mask_data_pairs_and_index(coarse_ws, tmp_path, strategy):
     assert rgb["RGB"].shape == (48, 48, 3)
     hidden = float(rgb["M"].mean())
     assert (hidden == 0.0) if strategy == "loo" else (0.1 < hidden < 0.6)
-    assert index["hf_views"] == [f.name for f in load_prepared(ws.output("scene", "prepared")).colour_views]
+    assert index["hf_views"] == [f.name for f in load_prepared(ws.output("prepare", "prepared")).colour_views]
     assert all(subband_file(ws, kind, v).is_file() for v in index["hf_views"] for kind in ("render", "ref"))
     m = ws.manifest("mask_data")
     assert m["strategy"] == strategy and m["models"] == (4 if strategy == "loo" else 1)

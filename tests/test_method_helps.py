@@ -29,7 +29,7 @@ def test_fine_beats_coarse_on_the_tiny_scene(finished_workspace):
 
 @pytest.mark.parametrize("sigma", [0.0, 0.3], ids=["identity", "noise"])
 def test_a_repair_that_does_not_repair_loses_the_gain(finished_workspace, tmp_path, monkeypatch, sigma):
-    import wgs.stages.s4_repair as repair_stage
+    import wgs.stages.repair.run as repair_stage
     from wgs.models.repair import Repairer
 
     real = repair_stage.load_repairer

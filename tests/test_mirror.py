@@ -136,9 +136,8 @@ def test_an_outline_view_teaches_its_mask_and_not_its_image():
     allows matter everywhere asks nothing of the model at that view."""
     from conftest import ring_w2c
 
-    from wgs.config import TrainConfig
     from wgs.gaussians.splats import create_splats
-    from wgs.gaussians.trainer import train_gaussians
+    from wgs.gaussians.trainer import TrainConfig, train_gaussians
     from wgs.scene.dataset import Frame
 
     gen = torch.Generator().manual_seed(0)

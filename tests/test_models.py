@@ -5,13 +5,13 @@ import math
 import pytest
 import torch
 
-from wgs.config import FinetuneConfig
 from wgs.errors import InputError
 from wgs.models.hf_unet import HFUNet, HFUNetConfig
 from wgs.models.ll_denoiser import LLDenoiser, LLDenoiserConfig
 from wgs.models.sampling import sdedit_repair
 from wgs.models.scheduler import DDIMScheduler
 from wgs.models.storage import load_model, save_model
+from wgs.stages.finetune.settings import FinetuneConfig
 from wgs.training.per_object import train_hf_unet, train_scratch_d
 from wgs.wavelet.haar import dwt2, idwt2
 

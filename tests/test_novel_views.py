@@ -97,8 +97,8 @@ def test_novel_views_do_not_depend_on_test_cameras(tmp_path):
     poses = []
     for src, ws in ((a, tmp_path / "wa"), (b, tmp_path / "wb")):
         assert CliRunner().invoke(cli, ["-q", "-w", str(ws), "prepare", str(src)]).exit_code == 0
-        sc = load_prepared(Workspace(ws).stage_dir("scene"))
-        assert sc.norm.to_json() == load_prepared(Workspace(tmp_path / "wa").stage_dir("scene")).norm.to_json()
+        sc = load_prepared(Workspace(ws).stage_dir("prepare"))
+        assert sc.norm.to_json() == load_prepared(Workspace(tmp_path / "wa").stage_dir("prepare")).norm.to_json()
         poses.append([f.viewmat for f, _ in novel_views(sc.train, 2, seed=0)])
     for p, q in zip(*poses, strict=True):
         assert torch.equal(p, q)

@@ -13,12 +13,13 @@ import torch
 from conftest import generated_frames
 
 import wgs.shape.hull as hull
-from wgs.config import FineConfig, resolve
+from wgs.config import resolve
 from wgs.gaussians.trainer import render_frame, train_gaussians
 from wgs.metrics import psnr
 from wgs.scene.dataset import Frame, PreparedScene, composite
 from wgs.shape.scores import HULL_CUT_LIMIT, hull_cut, mean_scores, silhouette_scores
-from wgs.stages.s5_fine import start_of
+from wgs.stages.fine.run import start_of
+from wgs.stages.fine.settings import FineConfig
 from wgs.stages.shared import initial_splats
 
 SIZE = 64

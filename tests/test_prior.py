@@ -256,8 +256,8 @@ def test_volume_pairs_train_chain(tmp_path):
 
 
 def test_prior_finetune_keeps_the_prior_unless_beaten():
-    from wgs.config import FinetuneConfig
     from wgs.models.storage import load_model
+    from wgs.stages.finetune.settings import FinetuneConfig
     from wgs.training.per_object import finetune_prior_d
     from wgs.weights import WEIGHTS
 

@@ -18,8 +18,8 @@ from conftest import TINY, make_scene
 
 import wgs.resume
 from tools.stress import STACK_MARKERS, max_param_difference, outcome
-from wgs.config import FinetuneConfig
 from wgs.resume import Checkpointer, Interrupted
+from wgs.stages.finetune.settings import FinetuneConfig
 from wgs.training.per_object import train_hf_unet, train_scratch_d
 
 pytestmark = pytest.mark.slow  # `pytest -m 'not slow'` for a quick loop; make test runs all
@@ -272,9 +272,8 @@ def test_a_finished_loop_resumes_to_its_result_without_moments(tmp_path):
     """Killed after training, before the outputs were written: the final state holds the model only."""
     from conftest import ring_w2c
 
-    from wgs.config import TrainConfig
     from wgs.gaussians.splats import create_splats
-    from wgs.gaussians.trainer import train_gaussians
+    from wgs.gaussians.trainer import TrainConfig, train_gaussians
     from wgs.scene.dataset import Frame
 
     f = Frame(

@@ -26,7 +26,7 @@ def prepare(scene, ws, *args):
 
 def world_poses(ws: Workspace):
     """{view index in sorted order: w2c in the source's world} from the prepared model."""
-    sc = load_prepared(ws.stage_dir("scene"), load_test_images=True)
+    sc = load_prepared(ws.stage_dir("prepare"), load_test_images=True)
     return sc, [sc.norm.w2c_from_normalised(f.viewmat.double().numpy()) for f in sc.train + sc.test]
 
 
@@ -35,7 +35,7 @@ def test_formats_round_trip(scene_formats, tmp_path, fmt):
     src = scene_formats[fmt]
     ref = read_scene(scene_formats["blender"])
     ws = prepare(src, tmp_path / "ws", "--views", "4")
-    info = read_json(ws.stage_dir("scene") / "scene.json")
+    info = read_json(ws.stage_dir("prepare") / "scene.json")
     assert info["format"] == fmt
     assert info["has_masks"] is True
     assert len(info["train_names"]) == 4
@@ -53,19 +53,19 @@ def test_formats_round_trip(scene_formats, tmp_path, fmt):
 
 def test_projection_matches_pycolmap(blender_scene, tmp_path):
     ws = prepare(blender_scene, tmp_path / "ws")
-    sc = load_prepared(ws.stage_dir("scene"))
+    sc = load_prepared(ws.stage_dir("prepare"))
     rng = np.random.default_rng(0)
     for f in sc.train:
         for X in rng.normal(scale=0.3, size=(5, 3)):
             cam = f.viewmat.double().numpy() @ np.append(X, 1.0)
             uv = (f.K.double().numpy() @ cam[:3])[:2] / cam[2]
-            ref = project_point(ws.stage_dir("scene") / "sparse", f.name, X)
+            ref = project_point(ws.stage_dir("prepare") / "sparse", f.name, X)
             np.testing.assert_allclose(uv, ref, atol=1e-3)
 
 
 def test_normalisation_uses_training_cameras_only(blender_scene, tmp_path):
-    a = read_json(prepare(blender_scene, tmp_path / "a", "--views", "3").stage_dir("scene") / "scene.json")
-    b = read_json(prepare(blender_scene, tmp_path / "b", "--views", "3").stage_dir("scene") / "scene.json")
+    a = read_json(prepare(blender_scene, tmp_path / "a", "--views", "3").stage_dir("prepare") / "scene.json")
+    b = read_json(prepare(blender_scene, tmp_path / "b", "--views", "3").stage_dir("prepare") / "scene.json")
     assert a["normalisation"] == b["normalisation"]
     n = Normalisation.from_json(a["normalisation"])
     w2c = np.eye(4)
@@ -81,17 +81,17 @@ def test_lego_done_when(tmp_path):
     res = CliRunner().invoke(cli, ["-w", str(ws.root), "info"])
     assert res.exit_code == 0
     assert "4 training views, 200 test views, 200x200 images, with masks" in " ".join(res.output.split())
-    info = read_json(ws.stage_dir("scene") / "scene.json")
+    info = read_json(ws.stage_dir("prepare") / "scene.json")
     assert info["train_images"][0].startswith("train/") and len(info["test_images"]) == 200
 
 
 def test_prepare_skips_when_fresh(blender_scene, tmp_path):
     ws = prepare(blender_scene, tmp_path / "ws")
-    t = ws.manifest("scene")["finished"], (ws.stage_dir("scene") / "manifest.json").stat().st_mtime_ns
+    t = ws.manifest("prepare")["finished"], (ws.stage_dir("prepare") / "manifest.json").stat().st_mtime_ns
     prepare(blender_scene, tmp_path / "ws")
-    assert (ws.stage_dir("scene") / "manifest.json").stat().st_mtime_ns == t[1]
+    assert (ws.stage_dir("prepare") / "manifest.json").stat().st_mtime_ns == t[1]
     prepare(blender_scene, tmp_path / "ws", "--downscale", "2")  # new config: redone
-    assert (ws.stage_dir("scene") / "manifest.json").stat().st_mtime_ns != t[1]
+    assert (ws.stage_dir("prepare") / "manifest.json").stat().st_mtime_ns != t[1]
 
 
 def test_downscale_premultiplied_keeps_edges_clean():
@@ -136,7 +136,7 @@ def test_colmap_distorted_is_undistorted(scene_formats, tmp_path):
         )
     rec.write_text(str(d / "sparse" / "0"))
     ws = prepare(d, tmp_path / "ws")
-    sc = load_prepared(ws.stage_dir("scene"))
+    sc = load_prepared(ws.stage_dir("prepare"))
     f = sc.train[0]
     assert f.image.shape[:2] == (f.height, f.width) and f.mask is not None
     assert abs(f.width - 48) <= 4
@@ -152,7 +152,7 @@ def test_colmap_uses_images_k(scene_formats, tmp_path):
     for p in (d / "images").iterdir():
         write_png(d / "images_2" / p.name, np.full((24, 24, 3), 0.25, np.float32))  # recognisable
     ws = prepare(d, tmp_path / "ws", "--downscale", "2")
-    first = load_prepared(ws.stage_dir("scene")).train[0]
-    img = read_image(ws.stage_dir("scene") / "images" / first.name)
+    first = load_prepared(ws.stage_dir("prepare")).train[0]
+    img = read_image(ws.stage_dir("prepare") / "images" / first.name)
     assert img.shape[:2] == (24, 24) and abs(float(img.mean()) - 0.25) < 0.01
     assert abs(first.K[0, 0].item() - 0.5 * read_scene(d).views[0].K[0, 0]) < 1e-4

@@ -11,11 +11,11 @@ import pytest
 from conftest import expect_error
 from photo_scene import make_photos
 
-from wgs.config import PrepareConfig
 from wgs.fields import facts
 from wgs.scene.colmap import read_colmap_scene
 from wgs.scene.pose_error import pose_errors
 from wgs.scene.sfm import MATCHERS, find_photos, pose_photos
+from wgs.stages.prepare.settings import PrepareConfig
 
 
 def test_matcher_choices_are_the_config_fields():
@@ -95,7 +95,7 @@ def test_poses_that_disagree_with_the_masks_are_refused(finished_workspace, tmp_
     moved sideways makes the other photos' hull leave out much of its mask: one error naming it."""
     from wgs.errors import InputError
     from wgs.scene.dataset import load_prepared
-    from wgs.stages.s0_prepare import poses_agree_with_masks
+    from wgs.stages.prepare.run import poses_agree_with_masks
 
     scene = tmp_path / "scene"
     shutil.copytree(finished_workspace[0] / "ws" / "scene", scene)

@@ -4,11 +4,10 @@ import math
 
 import torch
 
-from wgs.config import TrainConfig
 from wgs.gaussians.init import floater_mask, knn_mean_distance, knn_mean_distance_torch, visual_hull
 from wgs.gaussians.splats import create_splats
 from wgs.gaussians.strategy import DensifyStrategy, remove, reset_opacity, split
-from wgs.gaussians.trainer import make_optimizers
+from wgs.gaussians.trainer import TrainConfig, make_optimizers
 from wgs.scene.dataset import Frame
 from wgs.scene.orbit import look_at
 
@@ -185,8 +184,7 @@ def test_strategy_fires_when_a_time_budget_jumps_past_the_interval():
 def test_time_budget_stops_training_and_drives_the_schedule():
     import time
 
-    from wgs.config import TrainConfig
-    from wgs.gaussians.trainer import train_gaussians
+    from wgs.gaussians.trainer import TrainConfig, train_gaussians
 
     f = sphere_frames(size=16, n=2)
     sp = create_splats(torch.randn(100, 3) * 0.1, torch.rand(100, 3), torch.full((100,), 0.05), 0)
@@ -201,9 +199,9 @@ def test_densification_defaults_live_in_one_place():
     strategy_from reads every one of them (a renamed field is an AttributeError, not a silent default)."""
     import dataclasses
 
-    from wgs.config import CoarseConfig, TrainConfig
     from wgs.gaussians.strategy import DensifyParams
-    from wgs.gaussians.trainer import strategy_from
+    from wgs.gaussians.trainer import TrainConfig, strategy_from
+    from wgs.stages.coarse.settings import CoarseConfig
 
     assert issubclass(TrainConfig, DensifyParams)
     cfg = CoarseConfig(refine_stop=123, max_gaussians=77)

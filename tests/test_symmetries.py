@@ -3,9 +3,10 @@
 import pytest
 import torch
 
-from wgs.config import RepairConfig, check_choices
+from wgs.config import check_choices
 from wgs.errors import InputError
 from wgs.models.repair import SYMMETRIES, _apply_symmetry, symmetrized
+from wgs.stages.repair.settings import RepairConfig
 
 
 def test_every_symmetry_is_undone_exactly_on_a_non_square_image():

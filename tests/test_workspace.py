@@ -80,29 +80,29 @@ def test_lock_refuses_second_holder(tmp_path):
 def test_stage_run_swaps_only_on_success(tmp_path):
     ws = Workspace(tmp_path)
     with ws.lock():
-        with ws.stage_run("scene", {"a": 1}, "fp1") as run:
+        with ws.stage_run("prepare", {"a": 1}, "fp1") as run:
             run.path("x.txt").write_text("first")
-        assert ws.status("scene", "fp1") == "fresh"
-        with pytest.raises(RuntimeError), ws.stage_run("scene", {"a": 2}, "fp2") as run:
+        assert ws.status("prepare", "fp1") == "fresh"
+        with pytest.raises(RuntimeError), ws.stage_run("prepare", {"a": 2}, "fp2") as run:
             run.path("x.txt").write_text("second, half done")
             raise RuntimeError("stage failed")
-    assert (ws.stage_dir("scene") / "x.txt").read_text() == "first"
-    assert ws.manifest("scene")["fingerprint"] == "fp1"
+    assert (ws.stage_dir("prepare") / "x.txt").read_text() == "first"
+    assert ws.manifest("prepare")["fingerprint"] == "fp1"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene"]
 
 
 def test_fresh_and_stale(tmp_path):
     ws = Workspace(tmp_path)
     with ws.lock():
-        fp_scene = ws.stage_fingerprint("scene", {"v": 1})
-        with ws.stage_run("scene", {"v": 1}, fp_scene):
+        fp_scene = ws.stage_fingerprint("prepare", {"v": 1})
+        with ws.stage_run("prepare", {"v": 1}, fp_scene):
             pass
         fp_coarse = ws.stage_fingerprint("coarse", {"it": 10})
         with ws.stage_run("coarse", {"it": 10}, fp_coarse):
             pass
         assert ws.status("coarse", fp_coarse) == "fresh"
         assert ws.status("coarse", ws.stage_fingerprint("coarse", {"it": 11})) == "stale"  # config changed
-        with ws.stage_run("scene", {"v": 2}, ws.stage_fingerprint("scene", {"v": 2})):
+        with ws.stage_run("prepare", {"v": 2}, ws.stage_fingerprint("prepare", {"v": 2})):
             pass
         assert ws.status("coarse") == "stale"  # upstream changed
         assert ws.status("fine") == "missing"
@@ -110,7 +110,7 @@ def test_fresh_and_stale(tmp_path):
 
 def test_interrupted_swap_is_recovered(tmp_path):
     ws = Workspace(tmp_path)
-    with ws.lock(), ws.stage_run("scene", {}, "fp") as run:
+    with ws.lock(), ws.stage_run("prepare", {}, "fp") as run:
         run.path("x.txt").write_text("good")
     # simulate a crash between the two renames of a swap
     (tmp_path / "scene").rename(tmp_path / ".scene.old-123")
@@ -123,7 +123,7 @@ def test_interrupted_swap_is_recovered(tmp_path):
 
 def test_manifest_records_time_and_memory(tmp_path):
     ws = Workspace(tmp_path)
-    with ws.lock(), ws.stage_run("scene", {"k": 1}, "fp"):
+    with ws.lock(), ws.stage_run("prepare", {"k": 1}, "fp"):
         time.sleep(0.01)
-    m = ws.manifest("scene")
+    m = ws.manifest("prepare")
     assert m["wall_time_s"] >= 0.01 and m["peak_memory_mb"] > 0 and m["config"] == {"k": 1}

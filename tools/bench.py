@@ -73,7 +73,7 @@ def bench_pipeline(scene: str, root: str, preset: str, views: int, downscale: in
     res_3dgs = json.loads(Workspace(ws).output("eval", "results").read_text())["baseline_3dgs"]
     # leave-one-out pairs on the same coarse model, timed right after ORM's (recorded by `wgs all`)
     ws_loo.mkdir(parents=True)
-    for d in (STAGE_DIRS["scene"], STAGE_DIRS["coarse"]):
+    for d in (STAGE_DIRS["prepare"], STAGE_DIRS["coarse"]):
         shutil.copytree(ws / d, ws_loo / d)
     wgs_cli("-w", str(ws_loo), "mask-data", "--strategy", "loo", *pre)
     orm = Workspace(ws).finished("mask_data")
@@ -172,7 +172,7 @@ def timed_coarse_runs(
         if ws.exists():
             shutil.rmtree(ws)
         ws.mkdir(parents=True)
-        shutil.copytree(prepared / "scene", ws / "scene")
+        shutil.copytree(Workspace(prepared).stage_dir("prepare"), Workspace(ws).stage_dir("prepare"))
     for i in range(copies):
         cmd = [sys.executable, "-m", "wgs", "-q", "--config", str(cfg), "-w", str(root / f"ws{i}"), "coarse"]
         child = {k: v for k, v in {**os.environ, **env}.items() if v is not None}
@@ -299,15 +299,15 @@ def silhouette_knowledge(ws: Workspace, thresholds: tuple[float, ...] = S_THRESH
     (object probability > 0.5) beside the strict hull's and G_c's opacity's (> 0.5), and for each
     threshold t the share of the hull's excess where S says under t (what carving at t could
     remove) against the share of the true object there (what it would wrongly remove)."""
-    from wgs.config import RepairConfig
     from wgs.gaussians.splats import load_checkpoint
     from wgs.gaussians.trainer import render_frame
     from wgs.shape.hull import silhouette
     from wgs.shape.scores import silhouette_scores
-    from wgs.stages.s4_repair import shape_models
+    from wgs.stages.repair.run import shape_models
+    from wgs.stages.repair.settings import RepairConfig
     from wgs.stages.shared import background_for
 
-    scene = load_prepared(ws.output("scene", "prepared"), load_test_images=True)
+    scene = load_prepared(ws.output("prepare", "prepared"), load_test_images=True)
     device = torch.device("cpu")
     shape = shape_models(scene, RepairConfig(), device)
     frames = [f for f in scene.test if f.mask is not None]
@@ -379,7 +379,7 @@ def bench_shape(
                 "coarse_psnr": res["coarse"]["psnr"],
                 "wall_s": round(t, 1),
                 "mirror_views": bool(
-                    (json.loads(ws.output("scene", "info").read_text()).get("mirror") or {}).get("used")
+                    (json.loads(ws.output("prepare", "info").read_text()).get("mirror") or {}).get("used")
                 ),
                 "carving": ws.finished("repair").get("carving"),
             }
@@ -435,13 +435,14 @@ def bench_iteration(
 
     from wgs.config import resolve
     from wgs.gaussians.trainer import train_gaussians
-    from wgs.stages import StageEnv, run_stage
+    from wgs.stages.registry import run_stage
     from wgs.stages.shared import initial_splats
+    from wgs.stages.stage import StageEnv
 
     device = torch.device("cpu")
     cfg = resolve(stage)
     if stage == "fine":
-        from wgs.stages.s5_fine import fine_inputs
+        from wgs.stages.fine.run import fine_inputs
 
         if workspace is None:
             raise SystemExit("iteration --stage fine needs --workspace (a workspace after `wgs repair`)")
@@ -451,12 +452,12 @@ def bench_iteration(
     else:
         ws = Workspace(Path(root) / "iteration")
         run_stage(
-            "scene",
+            "prepare",
             ws,
             resolve("prepare", cli={"views": views, "downscale": downscale}),
             StageEnv(device, seed, scene_dir=Path(scene)),
         )
-        prepared = load_prepared(ws.output("scene", "prepared"))
+        prepared = load_prepared(ws.output("prepare", "prepared"))
         splats, pseudo = initial_splats(prepared, cfg, seed), None
     total = cfg.iterations
     start = total // 2 if start is None else start
@@ -525,8 +526,8 @@ def object_psnr(ws: Workspace, masks_from: Workspace) -> dict[str, float]:
     from wgs.metrics import psnr
     from wgs.stages.shared import background_for, newest_model
 
-    scene = load_prepared(ws.output("scene", "prepared"), load_test_images=True)
-    masked = {f.name: f.object_pixels for f in load_prepared(masks_from.output("scene", "prepared"), True).test}
+    scene = load_prepared(ws.output("prepare", "prepared"), load_test_images=True)
+    masked = {f.name: f.object_pixels for f in load_prepared(masks_from.output("prepare", "prepared"), True).test}
     splats, _ = load_checkpoint(ws.output(newest_model(ws), "model"), scene.norm)
     out = {}
     for f in scene.test:
@@ -570,7 +571,7 @@ def bench_masks(scene: str, root: str, preset: str, views: int, downscale: int) 
         "views": views,
         "downscale": downscale,
         "metric": "PSNR (dB) inside the automatic test masks, each model on its own background",
-        "masks": runs["auto"][0].finished("scene")["summary"]["masks"],
+        "masks": runs["auto"][0].finished("prepare")["summary"]["masks"],
     }
     for mode, (ws, t) in runs.items():
         per = object_psnr(ws, yardstick)
@@ -667,7 +668,7 @@ def main(argv: list[str] | None = None) -> None:
     if a.which == "contention":
         if not a.prepared:
             ap.error("contention needs --prepared WORKSPACE")
-        if not (Path(a.prepared) / "scene").is_dir():
+        if not Workspace(a.prepared).stage_dir("prepare").is_dir():
             print(f"no prepared workspace at {a.prepared}: skipped")
             return
         res = bench_contention(a.prepared, a.root, a.iterations, tuple(a.variants.split(",")))

@@ -32,7 +32,7 @@ from typing import Any
 
 import torch
 
-from wgs.config import UNASKED
+from wgs.stages.registry import UNASKED
 from wgs.workspace import Workspace
 
 # Long enough that every stage spans several seconds on a 2-core CPU (the tests use a smaller one).

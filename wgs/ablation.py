@@ -16,10 +16,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .config import METHOD, REGISTRY, TABLE_OF, stages_through
 from .errors import InputError
 from .io import atomic_write_bytes, atomic_write_json, read_json
 from .progress import fmt, log
+from .stages.registry import METHOD, REGISTRY, stages_through
 from .stages.shared import plain_3dgs_config
 from .workspace import STAGE_DIRS, Workspace
 
@@ -116,7 +116,7 @@ def run_ablation(
     prepare_overrides: dict[str, Any],
 ) -> list[dict[str, Any]]:
     from .estimate import RunTiming
-    from .stages import run_stage
+    from .stages.registry import run_stage
 
     device = ctx.torch_device()
     # the working size chosen for the machine where the options do not set it (one prepare for every row)
@@ -132,8 +132,7 @@ def run_ablation(
 
         def run(ws: Workspace, stages: tuple[str, ...], overrides: dict[str, dict[str, Any]], env=env) -> None:
             for name in stages:
-                table = TABLE_OF[name]
-                run_stage(name, ws, ctx.config(table, preset, **overrides.get(table, {})), env)
+                run_stage(name, ws, ctx.config(name, preset, **overrides.get(name, {})), env)
 
         shared = workspace("_shared")
         run(shared, stages_through("coarse"), {"prepare": prepare_overrides})
@@ -143,8 +142,8 @@ def run_ablation(
             ws = workspace(row.name)
             log(f"ablate: row {row.name} (repeat {rep + 1}/{repeats})")
             if row.strategy is None:
-                copy_stages(shared, ws, ("scene",))
-                budget = sum(t for st, t in timings[TIME_OF].items() if st != "scene")
+                copy_stages(shared, ws, ("prepare",))
+                budget = sum(t for st, t in timings[TIME_OF].items() if st != "prepare")
                 coarse_s = shared.finished("coarse")["train_seconds"]
                 cfg = plain_3dgs_config(
                     ctx.config("coarse", preset), budget, coarse_s, ctx.config("baseline", preset).headroom
@@ -152,7 +151,7 @@ def run_ablation(
                 run_stage("coarse", ws, cfg, env)
                 run(ws, ("eval",), {}, dataclasses.replace(env, final="coarse"))
                 timings[row.name] = {
-                    "scene": ws.finished("scene")["wall_time_s"],
+                    "prepare": ws.finished("prepare")["wall_time_s"],
                     "coarse": ws.finished("coarse")["wall_time_s"],
                 }
             else:

@@ -65,12 +65,12 @@ class RunOptions:
 
     def env(self, device=None, **kw: Any):
         """The stages' `StageEnv` for this run (`device`: one already resolved, else resolved here)."""
-        from .stages import StageEnv
+        from .stages.stage import StageEnv
 
         return StageEnv(**{"device": device if device is not None else self.torch_device(), "seed": self.seed, **kw})
 
     def run(self, name: str, cfg: Any, force: bool = False, ws: Workspace | None = None, **env: Any) -> bool:
         """Run one stage in this run's workspace (or `ws`) through the registry."""
-        from .stages import run_stage
+        from .stages.registry import run_stage
 
         return run_stage(name, ws if ws is not None else self.ws(), cfg, self.env(**env), force)

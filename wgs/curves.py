@@ -35,7 +35,7 @@ def test_probe(
     ids = probe_views([f.name for f in scene.test], k) if every_s > 0 else []
     if not ids:
         return None, []
-    frames = load_frame_images(ws.output("scene", "prepared"), [scene.test[i] for i in ids])
+    frames = load_frame_images(ws.output("prepare", "prepared"), [scene.test[i] for i in ids])
     refs = [composite(f.pixels, f.mask, background) for f in frames]
 
     def fn(splats) -> dict[str, float]:

@@ -5,8 +5,9 @@ A calibration of about 3 s times, on this machine and device, a training view's 
 (the rasterizer's forward + backward on a synthetic cloud, and the photometric loss's), a training
 step of the repair network D and its forward pass.
 A stage's time is then its work in those units (iterations, views, pixels, D steps and forwards)
-times a factor measured on whole runs (`FACTOR`, docs/speed.md "Working size, estimate and
-budget"), plus a fixed part in D-step units. The estimate is printed before training and kept in
+times a factor measured on whole runs, plus a fixed part in D-step units: each stage's cost model
+(`Stage.cost`, in its settings module) says how, from the pieces in `wgs.cost` (docs/speed.md
+"Working size, estimate and budget"). The estimate is printed before training and kept in
 `WS/run.json`; the report puts it beside the stages' actual times.
 """
 
@@ -19,31 +20,30 @@ import os
 import platform
 import re
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from .config import (
+from .config import as_dict
+from .cost import (
     CPU_TARGET_S,
+    D_STEP_BATCH,
+    D_STEP_CHANNELS,
+    D_STEP_CROP,
+    FIT_MASK_SHARE,
     GPU_MAX_SIZE,
-    STAGE_OF_TABLE,
-    TABLE_OF,
-    UNASKED,
-    CoarseConfig,
-    FineConfig,
-    MaskDataConfig,
-    TrainConfig,
-    as_dict,
+    Calibration,
+    SceneFacts,
+    StageCost,
     time_boxed,
 )
 from .errors import InputError
-from .gaussians.stopping import StopParams, pilot_cap
+from .gaussians.trainer import TrainConfig
 from .io import atomic_write_json
 from .progress import log
 from .scene.prepare import downscale_for
-from .threads import side_by_side
+from .stages.registry import REGISTRY, UNASKED
 from .workspace import Workspace, fingerprint
 
 CALIBRATION_SIDES = (128, 256)  # square views the rasterizer is timed at
@@ -56,65 +56,10 @@ HEADROOM = 3.0
 # a calibration is reused by the runs of the next hour on the same machine, device, thread count
 # and versions (a test suite's many small runs, a batch of scenes), from $WGS_CACHE (default ~/.cache/wgs)
 CALIBRATION_MAX_AGE_S = 3600.0
-# stage time / modelled work, measured on whole runs (`wgs all` on lego at 200 px and ethiopianHead
-# at 307 px, 2026-11-27; docs/speed.md "Working size, estimate and budget")
-# one step of eval's test-camera localisation (render, backward, the Gaussians moved) in rendered
-# views: 2.4 measured at 200x200 with 20k Gaussians (a random blob, tests/test_localise.py's)
-LOCALISE_STEP_VIEWS = 2.5
-FACTOR = {"coarse": 1.0, "mask_data": 0.8, "finetune": 1.75, "repair": 0.9, "fine": 0.93, "eval": 0.9}
-# a training loop's time grows with the share of the frame the object covers (more Gaussians, more
-# of them on each pixel), which the calibration's fixed synthetic cloud does not see: the training
-# stages' factors are times 1 + MASK_SHARE_SLOPE x (mask share - FIT_MASK_SHARE), at least
-# MIN_SHARE_FACTOR. FIT_MASK_SHARE: lego's 4 views, on which FACTOR was fitted; the slope from one
-# generated close-up (0.786 of its photos), checked on kinds of capture left out of that fit
-# (docs/speed.md "The estimate on captures it was not fitted on")
-FIT_MASK_SHARE = 0.245
-MASK_SHARE_SLOPE = 1.4
-MIN_SHARE_FACTOR = 0.5
-# the training stages of a scene without masks: the background is reconstructed too, with about
-# 4x the Gaussians (the fox at 213x379, 2026-11-27)
-NO_MASKS_FACTOR = 1.9
-# a stage's fixed part (loading, renders, files, the shape and carve steps), in D training steps
-FIXED_STEPS = {
-    "prepare": 20,
-    "coarse": 25,
-    "mask_data": 15,
-    "finetune": 20,
-    "repair": 35,
-    "fine": 10,
-    "eval": 10,
-    "baseline": 10,
-}
-# the baseline trains plain 3DGS for as long as these stages took (`stages.baseline`)
-BASELINE_BUDGET = ("coarse", "mask_data", "finetune", "repair", "fine")
-D_STEP_BATCH, D_STEP_CROP, D_STEP_CHANNELS = 16, 32, 32  # the D training step timed
-# the HF U-Net U: a step's cost in D steps, and the share of its step limit it runs on average (it
-# stops early where it does not beat no repair: 250 of 1500 steps on lego, all 1500 on ethiopianHead)
-U_STEP_SHARE, U_STEPS_RUN = 0.3, 0.5
-# side-by-side coarse models (one thread each, `threads.side_by_side`) train this many
-# times as fast, together, as one model on every thread (measured on 2 cores, wgs/threads.py)
-SIDE_BY_SIDE_THROUGHPUT = 1.5
-PREPARE_S_PER_MEGAPIXEL = 0.08  # reading, undistorting and downscaling a photo, per full-size megapixel
-TRAIN_STAGES = ("coarse", "mask_data", "fine")
-UNASKED_TABLES = tuple(TABLE_OF[name] for name in UNASKED)  # what `wgs all` runs unless asked for more
-
-
-@dataclass(frozen=True)
-class Calibration:
-    """Timings on this machine: a training view's rasterizer and photometric loss, forward and
-    backward, as `intercept + slope * pixels` seconds; D's training step (batch 16 of 32x32 crops, 32 channels) and D's
-    forward pass per pixel of its input."""
-
-    raster: tuple[float, float]
-    d_step_s: float
-    d_forward_s_per_pixel: float
-    threads: int
-    device: str
-    seconds: float
-
-    def view_s(self, pixels: float) -> float:
-        intercept, slope = self.raster
-        return intercept + slope * pixels
+FIRST = REGISTRY[0].name  # the stage that reads the scene; the estimate is made after it
+# the stages a budget shares out unless told which: those after the first that run unasked
+AFTER_FIRST = tuple(s.name for s in REGISTRY[1:] if not s.on_request)
+TRAIN_STAGES = tuple(s.name for s in REGISTRY if issubclass(s.settings, TrainConfig))  # a time box caps them
 
 
 def _affine(sides: tuple[int, int], seconds: tuple[float, float]) -> tuple[float, float]:
@@ -232,138 +177,20 @@ def cached_calibration(device: torch.device, now: float | None = None) -> Calibr
     return cal
 
 
-@dataclass(frozen=True)
-class SceneFacts:
-    """What a scene's cost depends on: its working size (px), its training and test views, its
-    photos' size before downscaling (prepare reads them), and whether it has masks."""
-
-    width: int
-    height: int
-    n_train: int
-    n_test: int
-    full_pixels: int = 0
-    has_masks: bool = True
-    posed_by_wgs: bool = False  # photos posed by prepare: eval localises the test cameras
-    mask_share: float = FIT_MASK_SHARE  # the share of a training photo inside its mask (prepare's record)
-
-    @property
-    def pixels(self) -> int:
-        return self.width * self.height
-
-
-# Where the held-out stopping rule's pilots stop gaining, for the estimate made before they run
-# (lego, 4 views at 200x200: 400, python -m wgs all ... --downscale 2, 2026-11-28)
-EXPECTED_PLATEAU = 400
-
-
-def expected_iterations(cfg: TrainConfig) -> int:
-    """The iterations a loop is expected to run: all of them, or under the held-out stopping rule
-    (`gaussians.stopping`) its margin times the expected plateau."""
-    if not isinstance(cfg, StopParams) or cfg.stop != "held-out" or cfg.max_seconds:
-        return cfg.iterations
-    return min(cfg.iterations, max(round(cfg.stop_margin * EXPECTED_PLATEAU), cfg.stop_min_iterations))
-
-
-def pilots_s(cal: Calibration, cfg: CoarseConfig, facts: SceneFacts, workers: int) -> float:
-    """The held-out rule's pilots: one per photo (at most `stop_pilots`) at half size, each until
-    `stop_patience` past the expected plateau, at most `pilot_cap`; 0 where the rule is off."""
-    if not isinstance(cfg, StopParams) or cfg.stop != "held-out" or cfg.max_seconds:
-        return 0.0
-    length = min(pilot_cap(cfg.iterations, cfg.stop_margin, cfg.stop_patience), EXPECTED_PLATEAU + cfg.stop_patience)
-    share = workers / SIDE_BY_SIDE_THROUGHPUT if workers > 1 else 1
-    return math.ceil(min(facts.n_train, cfg.stop_pilots) / workers) * length * cal.view_s(facts.pixels / 4) * share
-
-
-def cover_factor(facts: SceneFacts) -> float:
-    """The training stages' factor for how much of the frame the object covers."""
-    if not facts.has_masks:
-        return NO_MASKS_FACTOR
-    return max(MIN_SHARE_FACTOR, 1.0 + MASK_SHARE_SLOPE * (facts.mask_share - FIT_MASK_SHARE))
-
-
-def _loop_s(cal: Calibration, cfg: TrainConfig, pixels: float, renders: float = 1.0) -> float:
-    """One training loop's modelled seconds: its expected iterations, those in the first
-    `half_size_until` of the schedule at half size."""
-    ends = expected_iterations(cfg)
-    half = min(ends, cfg.half_size_until * cfg.iterations)
-    return (half * cal.view_s(pixels / 4) + (ends - half) * cal.view_s(pixels)) * renders
-
-
-def loops(cal: Calibration, cfgs: dict[str, Any], facts: SceneFacts) -> dict[str, tuple[int, float, float]]:
-    """Each training stage's (loops run one after another, modelled seconds of one loop, stage factor)."""
-    coarse: CoarseConfig = cfgs["coarse"]
-    workers = side_by_side(coarse.ensemble, coarse.iterations, facts.pixels, torch.device(cal.device).type == "cpu")
-    fine: FineConfig = cfgs["fine"]
-    mask: MaskDataConfig = cfgs["mask_data"]
-    masks = cover_factor(facts)
-    return {
-        "coarse": (
-            math.ceil(coarse.ensemble / workers),
-            _loop_s(cal, coarse, facts.pixels) * (workers / SIDE_BY_SIDE_THROUGHPUT if workers > 1 else 1),
-            FACTOR["coarse"] * masks,
-        ),
-        "mask_data": (
-            facts.n_train if mask.strategy == "loo" else 1,
-            _loop_s(cal, mask, facts.pixels),
-            FACTOR["mask_data"] * masks,
-        ),
-        "fine": (
-            max(1, fine.rounds),
-            _loop_s(cal, fine, facts.pixels, renders=1 + 1 / max(fine.pseudo_every, 1)),
-            FACTOR["fine"] * masks,
-        ),
-    }
+def costs(cal: Calibration, cfgs: dict[str, Any], facts: SceneFacts) -> dict[str, tuple[StageCost, float]]:
+    """Each stage's cost model (`Stage.cost`) and modelled wall time in seconds, for the stage
+    configs `cfgs` (stage name -> config) on a scene with `facts`."""
+    out: dict[str, tuple[StageCost, float]] = {}
+    for stage in REGISTRY:
+        cost = stage.cost(cal, cfgs, facts, {name: seconds for name, (_, seconds) in out.items()})
+        out[stage.name] = cost, cost.seconds(cal, getattr(cfgs[stage.name], "max_seconds", None))
+    return out
 
 
 def stage_seconds(cal: Calibration, cfgs: dict[str, Any], facts: SceneFacts) -> dict[str, float]:
-    """Modelled wall time of each stage (config table -> seconds) for the stage configs `cfgs`
-    (config table -> config) on a scene with `facts`."""
-    fixed = {k: v * cal.d_step_s for k, v in FIXED_STEPS.items()}
-    out = {
-        "prepare": fixed["prepare"] + PREPARE_S_PER_MEGAPIXEL * (facts.n_train + facts.n_test) * facts.full_pixels / 1e6
-    }
-    for table, (count, loop, factor) in loops(cal, cfgs, facts).items():
-        cfg = cfgs[table]
-        if cfg.max_seconds:
-            loop, factor = min(loop * factor, cfg.max_seconds), 1.0
-        out[table] = fixed[table] + count * loop * factor
-    coarse = cfgs["coarse"]
-    pilots = side_by_side(
-        min(facts.n_train, coarse.stop_pilots),
-        coarse.iterations,
-        facts.pixels // 4,
-        torch.device(cal.device).type == "cpu",
-    )
-    out["coarse"] += FACTOR["coarse"] * cover_factor(facts) * pilots_s(cal, coarse, facts, pilots)
-    ft, ev = cfgs["finetune"], cfgs["eval"]
-    d_pixels = facts.pixels / 4**ft.levels if ft.domain == "wavelet" else facts.pixels
-    d_steps = ft.prior_steps if ft.prior != "none" else ft.d_steps
-    width = (ft.d_channels / D_STEP_CHANNELS) ** 2 * (ft.d_batch * ft.d_crop**2) / (D_STEP_BATCH * D_STEP_CROP**2)
-    u_steps = ft.u_max_steps * U_STEPS_RUN if ft.use_u and ft.domain == "wavelet" else 0
-    # D's held-out check: SDEdit on the held-out pairs (about 44 pairs from G_d) every prior_eval_every steps
-    checks = (
-        (d_steps // max(ft.prior_eval_every, 1) + 1)
-        * math.ceil(44 * ft.holdout)
-        * math.ceil(ft.eval_steps * ft.eval_strength)
-    )
-    steps_s = cal.d_step_s * (FACTOR["finetune"] * d_steps * width + u_steps * U_STEP_SHARE)
-    out["finetune"] = fixed["finetune"] + steps_s + checks * d_pixels * cal.d_forward_s_per_pixel
-    rp = cfgs["repair"]
-    ensemble = cfgs["coarse"].ensemble
-    pseudo = rp.num_views if rp.poses == "sphere" else rp.views_per_train * facts.n_train
-    forwards = math.ceil(rp.steps * rp.strength) * rp.symmetries
-    per_render = forwards * d_pixels * cal.d_forward_s_per_pixel + cal.view_s(facts.pixels) / 2
-    out["repair"] = fixed["repair"] + FACTOR["repair"] * ensemble * pseudo * per_render * max(1, cfgs["fine"].rounds)
-    n_eval = min(facts.n_test, ev.max_views or facts.n_test)
-    gain = min(ev.repair_gain_views or n_eval, n_eval) if ev.repair_gain else 0
-    out["eval"] = fixed["eval"] + FACTOR["eval"] * (
-        n_eval * cal.view_s(facts.pixels)
-        + gain * ensemble * per_render
-        + ev.turntable_frames * cal.view_s(facts.pixels) / 2
-        + (n_eval * ev.localise_steps * LOCALISE_STEP_VIEWS * cal.view_s(facts.pixels) if facts.posed_by_wgs else 0)
-    )
-    out["baseline"] = fixed["baseline"] + sum(out[t] for t in BASELINE_BUDGET)
-    return {k: round(v, 1) for k, v in out.items()}
+    """Modelled wall time of each stage (stage name -> seconds) for the stage configs `cfgs`
+    (stage name -> config) on a scene with `facts`."""
+    return {name: round(seconds, 1) for name, (_, seconds) in costs(cal, cfgs, facts).items()}
 
 
 def per_stage(model: dict[str, float], tables: tuple[str, ...]) -> dict[str, float | None]:
@@ -376,7 +203,7 @@ def choose_downscale(
     cfgs: dict[str, Any],
     facts: SceneFacts,
     target_s: float | None,
-    runs: tuple[str, ...] = UNASKED_TABLES,
+    runs: tuple[str, ...] = UNASKED,
 ) -> tuple[int, float | None]:
     """The working size for the machine: on a GPU a long side of at most GPU_MAX_SIZE; else (or
     within a budget) the largest integer downscale of the photos (`facts` at full size) at which
@@ -398,32 +225,35 @@ def choose_downscale(
 
 
 def budget_plan(
-    cal: Calibration, cfgs: dict[str, Any], facts: SceneFacts, left_s: float, runs: tuple[str, ...] = tuple(FACTOR)
+    cal: Calibration, cfgs: dict[str, Any], facts: SceneFacts, left_s: float, runs: tuple[str, ...] = AFTER_FIRST
 ) -> dict[str, Any]:
     """The training stages in `runs` time-boxed so that the stages in `runs` take `left_s` seconds:
-    what the others are modelled to take is set aside, the rest shared among coarse, mask-data and
-    fine in proportion to their modelled times. Returns {"stages": table -> time-boxed config,
-    "seconds": table -> planned seconds}."""
-    model = stage_seconds(cal, cfgs, facts)
-    fixed_s = {k: v * cal.d_step_s for k, v in FIXED_STEPS.items()}
-    if "baseline" in runs:  # it trains as long again as the method's stages take: they get half of the rest
-        after = sum(model[t] for t in runs if t not in BASELINE_BUDGET and t != "baseline")
-        left_s = (left_s - after - fixed_s["baseline"]) / 2 + after
-    others = [t for t in ("finetune", "repair", "eval") if t in runs]
-    trained = [t for t in TRAIN_STAGES if t in runs]
+    what the others are modelled to take is set aside, the rest shared among the training stages
+    (those whose cost model has training loops) in proportion to their modelled times. Returns
+    {"stages": name -> time-boxed config, "seconds": name -> planned seconds}. The first stage has
+    run when the plan is made: it is left out."""
+    runs = tuple(t for t in runs if t != FIRST)
+    modelled = costs(cal, cfgs, facts)
+    model = {t: round(seconds, 1) for t, (_, seconds) in modelled.items()}
+    fixed_s = {t: cost.fixed_steps * cal.d_step_s for t, (cost, _) in modelled.items()}
+    followers = [s for s in REGISTRY if s.trains_for and s.name in runs]
+    for s in followers:  # it trains as long again as the stages it follows take: they get half of the rest
+        after = sum(model[t] for t in runs if t not in s.trains_for and t != s.name)
+        left_s = (left_s - after - fixed_s[s.name]) / 2 + after
+    trained = [s.name for s in REGISTRY if s.name in runs and modelled[s.name][0].loops]
+    others = [s.name for s in REGISTRY if s.name in runs and s.name not in trained and s not in followers]
     train = max(left_s - sum(model[t] for t in others) - sum(fixed_s[t] for t in trained), 1.0)
-    modelled = {t: v for t, v in loops(cal, cfgs, facts).items() if t in runs}
-    total = sum(count * loop * factor for count, loop, factor in modelled.values())
+    total = sum(c.loops * c.loop_s * c.factor for c, _ in (modelled[t] for t in trained))
     stages, seconds = {}, {}
-    for table, (count, loop, factor) in modelled.items():
-        share = train * count * loop * factor / total
-        per_loop = share / count
-        stages[table] = time_boxed(cfgs[table], per_loop, loop * factor, HEADROOM)
+    for table in trained:
+        cost = modelled[table][0]
+        share = train * cost.loops * cost.loop_s * cost.factor / total
+        stages[table] = time_boxed(cfgs[table], share / cost.loops, cost.loop_s * cost.factor, HEADROOM)
         seconds[table] = round(fixed_s[table] + share, 1)
     for table in others:
         seconds[table] = model[table]
-    if "baseline" in runs:
-        seconds["baseline"] = round(fixed_s["baseline"] + sum(seconds[t] for t in BASELINE_BUDGET if t in seconds), 1)
+    for s in followers:
+        seconds[s.name] = round(fixed_s[s.name] + sum(seconds[t] for t in s.trains_for if t in seconds), 1)
     return {"stages": stages, "seconds": seconds}
 
 
@@ -462,7 +292,7 @@ class RunTiming:
     ):
         """`asked`: the stages that run only on request and were asked for (`wgs all --baseline`)."""
         self.device, self.cfgs, self.budget_s = device, cfgs, budget_s
-        self.runs = UNASKED_TABLES + tuple(TABLE_OF[name] for name in asked)
+        self.runs = UNASKED + asked
         self.started = time.perf_counter()
         self._cal: Calibration | None = None
         self.key = f"budget {budget_s:g} s" if budget_s else f"machine ({device.type})"
@@ -472,8 +302,8 @@ class RunTiming:
             self._cal = cached_calibration(self.device)
         return self._cal
 
-    def __call__(self, width: int, height: int, n_train: int, n_test: int) -> tuple[int, str]:
-        """The working size (`stages.WorkingSize`)."""
+    def __call__(self, width: int, height: int, n_train: int, n_test: int, has_masks: bool) -> tuple[int, str]:
+        """The working size (`stages.stage.WorkingSize`)."""
         if self.device.type != "cpu" and not self.budget_s:
             k = downscale_for(width, height, GPU_MAX_SIZE)
             return k, (
@@ -482,9 +312,7 @@ class RunTiming:
             )
         cal = self.calibration()
         target = self.budget_s or CPU_TARGET_S
-        facts = SceneFacts(
-            width, height, n_train, n_test, full_pixels=width * height, has_masks=self.cfgs["prepare"].masks != "none"
-        )
+        facts = SceneFacts(width, height, n_train, n_test, full_pixels=width * height, has_masks=has_masks)
         k, modelled = choose_downscale(cal, self.cfgs, facts, target, self.runs)
         total = modelled if modelled is not None else math.inf  # a target gives a time
         limit = f"the budget of {minutes(target)}" if self.budget_s else f"about {minutes(target)}"
@@ -542,7 +370,7 @@ class RunTiming:
                 + ", ".join(f"{t.replace('_', '-')} {minutes(s)}" for t, s in plan["seconds"].items() if t in runs)
                 + " (the training stages time-boxed)"
             )
-        pending = tuple(t for t in runs if t != "prepare" and not _fresh(ws, t, cfgs[t]))
+        pending = tuple(t for t in runs if t != FIRST and not _fresh(ws, t, cfgs[t]))
         record: dict[str, Any] = {"budget_s": self.budget_s, "plan": plan}
         if pending:
             cal = self.calibration()
@@ -577,6 +405,6 @@ def _boxed_fields(cfg: TrainConfig) -> dict[str, Any]:
 
 def _fresh(ws: Workspace, table: str, cfg: Any, fields: dict[str, Any] | None = None) -> bool:
     """Whether the stage of config table `table` last ran with `cfg` (with `fields` over it)."""
-    held = (ws.manifest(STAGE_OF_TABLE[table]) or {}).get("config")
+    held = (ws.manifest(table) or {}).get("config")
     want = as_dict(dataclasses.replace(cfg, **fields) if fields else cfg)
     return held is not None and fingerprint(held) == fingerprint(want)

@@ -12,10 +12,10 @@ from typing import Any
 
 import torch
 
-from .config import METHOD, REGISTRY, STAGE_OF_TABLE, UNASKED
 from .io import read_json
 from .progress import fmt, log, results
-from .workspace import COMMANDS, Workspace
+from .stages.registry import METHOD, REGISTRY, STAGE, UNASKED
+from .workspace import Workspace
 
 MANY_VIEWS = 12  # from this many training views on, diffusion repair is left out by default
 REPAIR_STAGES = METHOD[METHOD.index("coarse") + 1 :]  # what a sparse-view scene adds to plain 3DGS
@@ -23,7 +23,7 @@ REPAIR_STAGES = METHOD[METHOD.index("coarse") + 1 :]  # what a sparse-view scene
 
 @dataclass
 class StageOutcome:
-    stage: str  # the stage's config table name (prepare, coarse, mask_data, ...)
+    stage: str  # the stage's name (prepare, coarse, mask_data, ...)
     status: str  # ran | skipped (fresh) | left out
     seconds: float
     note: str = ""
@@ -34,7 +34,7 @@ def left_out(stage: str, info: dict[str, Any], force_repair: bool, asked: tuple[
     stages that run only on request and were asked for."""
     n_train = len(info["train_names"])
     if stage not in UNASKED and stage not in asked:
-        return f"not asked for (--{COMMANDS[stage]})"
+        return f"not asked for (--{STAGE[stage].command})"
     if stage in REPAIR_STAGES and n_train >= MANY_VIEWS and not force_repair:
         return f"{n_train} training views -> no diffusion repair (it is for sparse views; --force-repair runs it)"
     return None
@@ -55,7 +55,7 @@ def run_all(
     request, those not in `asked`. After prepare it prints the estimate of what is left and, with
     `budget_s`, time-boxes the training stages so that the run ends within the budget."""
     from .estimate import RunTiming
-    from .stages import run_stage
+    from .stages.registry import run_stage
 
     ws: Workspace = ctx.ws()
     device: torch.device = ctx.torch_device()
@@ -67,18 +67,18 @@ def run_all(
         if info is not None and (why := left_out(stage.name, info, force_repair, asked)) is not None:
             if (not outcomes or outcomes[-1].note != why) and stage.name in UNASKED:
                 log(f"left out: {why}")
-            outcomes.append(StageOutcome(stage.table, "left out", 0.0, why))
+            outcomes.append(StageOutcome(stage.name, "left out", 0.0, why))
             continue
         final = "coarse" if info is not None and left_out("fine", info, force_repair) else "fine"
         env = ctx.env(device, scene_dir=scene_dir, final=final, working_size=timing)
         t0 = time.perf_counter()
-        ran = run_stage(stage.name, ws, cfgs[stage.table], env, force)
-        outcomes.append(StageOutcome(stage.table, "ran" if ran else "skipped (fresh)", time.perf_counter() - t0))
-        if stage.name == "scene":
-            info = read_json(ws.output("scene", "info"))
+        ran = run_stage(stage.name, ws, cfgs[stage.name], env, force)
+        outcomes.append(StageOutcome(stage.name, "ran" if ran else "skipped (fresh)", time.perf_counter() - t0))
+        if stage.name == "prepare":
+            info = read_json(ws.output("prepare", "info"))
             if not info["has_masks"]:
                 log("left out: no masks -> no visual hull, no mask loss, no random background")
-            runs = tuple(s.table for s in REGISTRY if left_out(s.name, info, force_repair, asked) is None)
+            runs = tuple(s.name for s in REGISTRY if left_out(s.name, info, force_repair, asked) is None)
             cfgs = timing.after_prepare(ws, info, runs)
     return outcomes
 
@@ -87,15 +87,15 @@ def prepare_and_estimate(ctx, scene_dir: Path, preset: str | None, options: dict
     """`wgs prepare`: import the scene at the working size chosen for the machine (unless the options
     set it) and print the estimate of the stages `wgs all` would run after it."""
     from .estimate import RunTiming
-    from .stages import run_stage
+    from .stages.registry import run_stage
 
     ws: Workspace = ctx.ws()
     device: torch.device = ctx.torch_device()
     cfgs = ctx.configs(preset, {"prepare": options})
     timing = RunTiming(device, cfgs)
-    run_stage("scene", ws, cfgs["prepare"], ctx.env(device, scene_dir=scene_dir, working_size=timing), force)
-    info = read_json(ws.output("scene", "info"))
-    timing.after_prepare(ws, info, tuple(s.table for s in REGISTRY if left_out(s.name, info, False) is None))
+    run_stage("prepare", ws, cfgs["prepare"], ctx.env(device, scene_dir=scene_dir, working_size=timing), force)
+    info = read_json(ws.output("prepare", "info"))
+    timing.after_prepare(ws, info, tuple(s.name for s in REGISTRY if left_out(s.name, info, False) is None))
 
 
 def print_summary(ws: Workspace, outcomes: list[StageOutcome]) -> None:
@@ -105,7 +105,7 @@ def print_summary(ws: Workspace, outcomes: list[StageOutcome]) -> None:
     for col in ("stage", "this run", "time (s)", "stage wall time (s)"):
         table.add_column(col)
     for o in outcomes:
-        m = ws.manifest(STAGE_OF_TABLE[o.stage]) or {}
+        m = ws.manifest(o.stage) or {}
         wt = m.get("wall_time_s")
         table.add_row(
             o.stage,

@@ -28,14 +28,14 @@ from pathlib import Path
 from typing import Any
 
 from . import __version__
-from .config import OUTPUTS, REGISTRY, as_dict
+from .config import as_dict
 from .errors import InputError, WgsError, WorkspaceLocked
 from .io import atomic_write_bytes, atomic_write_json, json_default, path_in
 from .resume import Checkpointer
+from .stages.registry import REGISTRY, STAGE
 
 STAGE_DIRS: dict[str, str] = {s.name: s.folder for s in REGISTRY}
 UPSTREAM: dict[str, tuple[str, ...]] = {s.name: s.upstream for s in REGISTRY}
-COMMANDS: dict[str, str] = {s.name: s.command for s in REGISTRY}
 MANIFEST = "manifest.json"
 LOCK = ".wgs.lock"
 RUN_RECORD = "run.json"  # the last `wgs all` or `wgs prepare`'s calibration, estimate and budget plan (wgs.estimate)
@@ -45,9 +45,9 @@ RESUME = ".resume"  # WS/.resume/<stage dir>/: staging folder `out/`, loop check
 def declared(stage: str, key: str) -> str:
     """The path, inside its folder, of the output `key` that `stage` declares in the registry."""
     try:
-        return OUTPUTS[stage][key]
+        return STAGE[stage].outputs[key]
     except KeyError:
-        raise KeyError(f"stage {stage!r} declares no output {key!r} (config.REGISTRY)") from None
+        raise KeyError(f"stage {stage!r} declares no output {key!r} (stages.registry)") from None
 
 
 def fingerprint(obj: Any) -> str:
@@ -173,12 +173,13 @@ class Workspace:
 
         fp = self.stage_fingerprint(stage, config, extra)
         if not force and self.status(stage, fp) == "fresh":
-            log(f"{COMMANDS[stage]}: up to date, skipped")
+            log(f"{STAGE[stage].command}: up to date, skipped")
             return None
         for req in requires:
             if self.manifest(req) is None:
                 raise InputError(
-                    f"the {COMMANDS[req]} stage has not run: run `wgs {COMMANDS[req]}` first", self.stage_dir(req)
+                    f"the {STAGE[req].command} stage has not run: run `wgs {STAGE[req].command}` first",
+                    self.stage_dir(req),
                 )
         return fp
 
@@ -261,15 +262,15 @@ class Workspace:
             if self.resume and old == fp:
                 saved = any(rdir.glob("*.pt"))
                 log(
-                    f"{COMMANDS[stage]}: resuming "
+                    f"{STAGE[stage].command}: resuming "
                     + ("from the saved state" if saved else "(keeping the files written before the interruption)")
                 )
                 (rdir / "out").mkdir(parents=True, exist_ok=True)
                 return rdir / "out"
             if not self.resume and any(rdir.glob("*.pt")):
-                log(f"{COMMANDS[stage]}: starting over (add --resume to continue from the saved state)")
+                log(f"{STAGE[stage].command}: starting over (add --resume to continue from the saved state)")
             elif self.resume:
-                log(f"{COMMANDS[stage]}: the saved state belongs to other inputs or settings: starting over")
+                log(f"{STAGE[stage].command}: the saved state belongs to other inputs or settings: starting over")
             shutil.rmtree(rdir)
         (rdir / "out").mkdir(parents=True)
         atomic_write_bytes(rdir / "fingerprint", fp.encode())

@@ -36,7 +36,7 @@ if __name__ == "__main__":
     model, _ = load_model(Path(sys.argv[3]) if len(sys.argv) > 3 else WEIGHTS_V)
     for name in OBJECTS:
         ws = Workspace(root / name / s_tag)
-        scene = load_prepared(ws.output("scene", "prepared"), load_test_images=True)
+        scene = load_prepared(ws.output("prepare", "prepared"), load_test_images=True)
         strict = visual_hull_grid(scene.train, 96, tolerate=0)
         by_s = load_grid(ws.output("repair", "carved_hull"))
         prob = occupied_probability(model, scene.train, strict)

@@ -15,7 +15,7 @@ from wgs.shape.hull import silhouette, visual_hull_grid
 from wgs.workspace import Workspace
 
 ws = Workspace(sys.argv[1])
-scene = load_prepared(ws.output("scene", "prepared"))
+scene = load_prepared(ws.output("prepare", "prepared"))
 if not scene.info.get("mirror", {}).get("used"):
     raise SystemExit("the scene's mirror check did not pass: no plane")
 plane = MirrorPlane.from_json(scene.info["mirror"]["plane"])

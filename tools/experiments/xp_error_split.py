@@ -34,7 +34,7 @@ if __name__ == "__main__":
     ws = Workspace(Path(sys.argv[1]))
     stage = sys.argv[2] if len(sys.argv) > 2 else "fine"
     every = int(sys.argv[3]) if len(sys.argv) > 3 else 2
-    scene = load_prepared(ws.output("scene", "prepared"), load_test_images=True)
+    scene = load_prepared(ws.output("prepare", "prepared"), load_test_images=True)
     bg, dev = background_for(scene), torch.device("cpu")
     splats, _ = load_checkpoint(ws.output(stage, "model"), scene.norm, dev)
     rows: dict[str, list[float]] = {

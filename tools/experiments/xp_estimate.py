@@ -13,25 +13,25 @@ import argparse
 import json
 from pathlib import Path
 
-from wgs.config import REGISTRY
-from wgs.estimate import FIT_MASK_SHARE, Calibration, SceneFacts, stage_seconds
+from wgs.cost import FIT_MASK_SHARE, Calibration, SceneFacts
+from wgs.estimate import stage_seconds
 from wgs.io.images import find_with_stem, read_image, to_mask
 from wgs.scene.prepare import mask_share
+from wgs.stages.registry import REGISTRY
 from wgs.stages.shared import recorded_config
 from wgs.workspace import Workspace
 
 LOSS_2_CORES = (0.0005, 2.0e-7)  # s, s per pixel: the photometric loss, forward + backward (2026-11-27)
-TABLES = [s.table for s in REGISTRY if s.name != "baseline"]
-NAME = {s.table: s.name for s in REGISTRY}
+TABLES = [s.name for s in REGISTRY]
 
 
 def share(ws: Workspace) -> float:
     """The training photos' mask share, as prepare records it (read from the masks where a
     workspace was prepared before it was recorded)."""
-    info = json.loads((ws.stage_dir("scene") / "scene.json").read_text())
+    info = json.loads((ws.stage_dir("prepare") / "scene.json").read_text())
     if "training_share" in info["masks"]:
         return info["masks"]["training_share"]
-    folder = ws.stage_dir("scene") / "masks"
+    folder = ws.stage_dir("prepare") / "masks"
     found = [find_with_stem(folder, Path(n).stem) for n in info["train_names"]]
     if not all(found):
         return FIT_MASK_SHARE
@@ -49,14 +49,14 @@ def one(ws: Workspace, wall: float | None) -> dict:
         }
     cal = Calibration(**{**cal, "raster": tuple(cal["raster"])})
     sc = run["scene"]
-    cfgs = {t: recorded_config(ws, NAME[t]) for t in TABLES}
-    masks = sc.get("has_masks", (ws.manifest("scene") or {}).get("summary", {}).get("has_masks", True))
+    cfgs = {t: recorded_config(ws, t) for t in TABLES}
+    masks = sc.get("has_masks", (ws.manifest("prepare") or {}).get("summary", {}).get("has_masks", True))
     now = stage_seconds(
         cal,
         cfgs,
         SceneFacts(sc["width"], sc["height"], sc["train"], sc["test"], has_masks=masks, mask_share=share(ws)),
     )
-    actual = {t: (ws.manifest(NAME[t]) or {}).get("wall_time_s") for t in TABLES}
+    actual = {t: (ws.manifest(t) or {}).get("wall_time_s") for t in TABLES}
     printed = run.get("estimate") or {}
     shown = [t for t in TABLES if t != "prepare" and printed.get(t) is not None and actual[t] is not None]
     tot = {k: sum(d[t] for t in shown) for k, d in (("printed", printed), ("now", now), ("actual", actual))}

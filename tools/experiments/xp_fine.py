@@ -12,15 +12,16 @@ import torch
 from wgs.config import resolve
 from wgs.gaussians.splats import load_checkpoint
 from wgs.scene.dataset import load_prepared
-from wgs.stages import StageEnv, run_stage
-from wgs.stages.s6_eval import evaluate_model
+from wgs.stages.eval.run import evaluate_model
+from wgs.stages.registry import run_stage
 from wgs.stages.shared import background_for
+from wgs.stages.stage import StageEnv
 from wgs.workspace import STAGE_DIRS, Workspace
 
 
 def test_scores(ws: Workspace, stage: str) -> dict[str, float]:
     """Mean PSNR and (where the test views have masks) silhouette IoU over all test views."""
-    scene = load_prepared(ws.stage_dir("scene"), load_test_images=True)
+    scene = load_prepared(ws.stage_dir("prepare"), load_test_images=True)
     splats = load_checkpoint(ws.output(stage, "model"), scene.norm)[0]
     per = evaluate_model(splats, scene.test, torch.device("cpu"), background_for(scene), None)
     return {k: round(sum(v.values()) / len(v), 4) for k, v in per.items() if k in ("psnr", "silhouette_iou")}
@@ -31,7 +32,7 @@ if __name__ == "__main__":
     repair = Path(sys.argv[4]).resolve() if len(sys.argv) > 4 else None
     root = Path("fx") / tag
     root.mkdir(parents=True, exist_ok=True)
-    for stage in ("scene", "coarse", "mask_data", "finetune", "repair"):
+    for stage in ("prepare", "coarse", "mask_data", "finetune", "repair"):
         link = root / STAGE_DIRS[stage]
         if not link.exists():
             link.symlink_to(repair if stage == "repair" and repair else base / STAGE_DIRS[stage])

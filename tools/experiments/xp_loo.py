@@ -11,7 +11,7 @@ from pathlib import Path
 import torch
 from xp_lib import score_refs, train_subset
 
-from wgs.config import RepairConfig, resolve
+from wgs.config import resolve
 from wgs.gaussians.splats import load_checkpoint
 from wgs.gaussians.trainer import render_frame
 from wgs.models.data import load_pairs, to_model
@@ -19,7 +19,8 @@ from wgs.models.repair import load_repairer
 from wgs.models.storage import save_model
 from wgs.scene.dataset import load_prepared
 from wgs.scene.orbit import sphere_views
-from wgs.stages.s3_finetune import finetune_prior_d
+from wgs.stages.finetune.run import finetune_prior_d
+from wgs.stages.repair.settings import RepairConfig
 from wgs.stages.shared import background_for, coarse_members
 from wgs.threads import map_in_processes
 from wgs.wavelet.haar import dwt2
@@ -33,7 +34,7 @@ if __name__ == "__main__":
     hull_all = len(sys.argv) > 6 and sys.argv[6] == "hull4"
     out.mkdir(parents=True, exist_ok=True)
     dev = torch.device("cpu")
-    sdir = ws.stage_dir("scene")
+    sdir = ws.stage_dir("prepare")
     scene = load_prepared(sdir, load_test_images=True)
     n = len(scene.train)
     jobs = [

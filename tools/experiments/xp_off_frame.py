@@ -99,7 +99,7 @@ def coarse_psnr(ws: Path, scene_dir: Path, rule: str) -> float:
     from wgs.workspace import Workspace
 
     w = Workspace(ws)
-    scene = load_prepared(w.output("scene", "prepared"), load_test_images=True)
+    scene = load_prepared(w.output("prepare", "prepared"), load_test_images=True)
     bg = background_for(scene)
     splats, _ = load_checkpoint(w.output("coarse", "model"), scene.norm, torch.device("cpu"))
     vals = [

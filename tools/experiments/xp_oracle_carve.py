@@ -15,7 +15,7 @@ from pathlib import Path
 
 import torch
 
-import wgs.stages.s4_repair as repair
+import wgs.stages.repair.run as repair
 from wgs.cli import main
 from wgs.scene.dataset import load_prepared
 from wgs.shape.hull import silhouette, visual_hull_grid

@@ -33,7 +33,7 @@ if __name__ == "__main__":
     print("| scene | hull IoU | own-shape IoU | hull excess | own-shape excess | own-shape missed | what | s |")
     print("|---|---|---|---|---|---|---|---|")
     for w in a.workspaces:
-        scene = load_prepared(Workspace(w).output("scene", "prepared"), load_test_images=True)
+        scene = load_prepared(Workspace(w).output("prepare", "prepared"), load_test_images=True)
         hull = visual_hull_grid(scene.train, a.resolution, tolerate=0)
         shape, rec = own_shape(hull, scene.photos, params)
         before, after = test_scores(hull, scene.test), test_scores(shape, scene.test)

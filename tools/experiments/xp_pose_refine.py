@@ -29,14 +29,14 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from xp_unposed_run import aligned_tests, generated_scene, lego_scene, run_all, score  # noqa: E402
 
-from wgs.config import CoarseConfig  # noqa: E402
 from wgs.gaussians.pose_refine import CameraCorrections  # noqa: E402
 from wgs.gaussians.trainer import train_gaussians  # noqa: E402
 from wgs.scene.convention import c2w_opengl_to_w2c_opencv  # noqa: E402
 from wgs.scene.dataset import load_prepared  # noqa: E402
 from wgs.scene.pose_error import pose_errors  # noqa: E402
 from wgs.shape.scores import leave_one_out, mean_scores  # noqa: E402
-from wgs.stages.s6_eval.scoring import spread  # noqa: E402
+from wgs.stages.coarse.settings import CoarseConfig  # noqa: E402
+from wgs.stages.eval.scoring import spread  # noqa: E402
 from wgs.stages.shared import initial_splats  # noqa: E402
 from wgs.workspace import Workspace  # noqa: E402
 
@@ -87,7 +87,7 @@ def main() -> None:
     args = ap.parse_args()
     rows, runs = [], []
     for case in sorted(p for p in args.out.iterdir() if (p / "ws_unposed").is_dir()):
-        scene = load_prepared(Workspace(case / "ws_unposed").output("scene", "prepared"))
+        scene = load_prepared(Workspace(case / "ws_unposed").output("prepare", "prepared"))
         true = truth(case / "posed")
         photos = [f for f in scene.train if Path(f.name).stem in true]
         before = medians({f.name: f.viewmat.double().numpy() for f in photos}, true)

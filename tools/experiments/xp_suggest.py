@@ -67,7 +67,7 @@ def scores(scene_dir: Path, ws: Path) -> dict[str, float]:
         wgs("-w", str(ws), "prepare", str(scene_dir), "--mirror", "none")
         wgs("-w", str(ws), "coarse", "--preset", "fast")
     w = Workspace(ws)
-    scene = load_prepared(w.output("scene", "prepared"), load_test_images=True)
+    scene = load_prepared(w.output("prepare", "prepared"), load_test_images=True)
     hull = visual_hull_grid(scene.train, 64, tolerate=0)
     splats, _ = load_checkpoint(w.output("coarse", "model"), scene.norm)
     bg = background_for(scene)
@@ -107,7 +107,7 @@ if __name__ == "__main__":
         ws4 = a.out / f"{kind}_4_ws"
         if not (ws4 / "0_scene").is_dir():
             wgs("-w", str(ws4), "prepare", str(base), "--mirror", "none")
-        scene = load_prepared(Workspace(ws4).output("scene", "prepared"))
+        scene = load_prepared(Workspace(ws4).output("prepare", "prepared"))
         record = suggest_view(*loose_voxels(visual_hull_grid(scene.train, 64, tolerate=0)), scene.photos)
         pool = [f for f, _ in sphere_views(scene.photos, CANDIDATES, BELOW_DEG, ABOVE_DEG)]
         picks = random.Random(a.seed).sample(range(len(pool)), a.random)

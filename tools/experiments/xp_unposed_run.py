@@ -36,7 +36,7 @@ from wgs.io.images import downscale, read_image, split_rgba, write_png  # noqa: 
 from wgs.scene.convention import c2w_opengl_to_w2c_opencv  # noqa: E402
 from wgs.scene.dataset import Frame, load_prepared  # noqa: E402
 from wgs.scene.pose_error import centers, pose_errors, umeyama  # noqa: E402
-from wgs.stages.s6_eval.scoring import evaluate_model, spread, summarise  # noqa: E402
+from wgs.stages.eval.scoring import evaluate_model, spread, summarise  # noqa: E402
 from wgs.workspace import Workspace  # noqa: E402
 
 WGS = str(Path(sys.executable).with_name("wgs"))
@@ -122,7 +122,7 @@ def aligned_tests(ws: Path, truth: dict[str, np.ndarray], tests: dict) -> tuple[
     """The true test cameras moved into the workspace's normalised world, at its working size,
     with their images; and the training poses' error against the truth."""
     ws_ = Workspace(ws)
-    scene = load_prepared(ws_.output("scene", "prepared"))
+    scene = load_prepared(ws_.output("prepare", "prepared"))
     # prepare names a view by its split ("train_photo_000.png"): match on the photo's own name
     own = {f.name: next(k for k in truth if f.name.endswith(k)) for f in scene.photos}
     est = {own[f.name]: f.viewmat.double().numpy() for f in scene.photos}

@@ -40,14 +40,15 @@ def to_u8(x: torch.Tensor | np.ndarray) -> np.ndarray:
 def object_pairs(scene_dir: Path, work: Path, views: int, coarse_overrides: dict, seed: int = 0) -> dict:
     """prepare + coarse on `views` views of the scene, then G_c at every test pose -> arrays.
     One coarse model per object (the product's ensemble would cost ten for the same pairs)."""
-    from wgs.stages import StageEnv, run_stage
+    from wgs.stages.registry import run_stage
+    from wgs.stages.stage import StageEnv
 
     ws = Workspace(work)
     t0 = time.perf_counter()
     env = StageEnv(torch.device("cpu"), seed, scene_dir=scene_dir)
-    run_stage("scene", ws, resolve("prepare", cli={"views": views}), env)
+    run_stage("prepare", ws, resolve("prepare", cli={"views": views}), env)
     run_stage("coarse", ws, resolve("coarse", cli={"ensemble": 1, **coarse_overrides}), env)
-    scene = load_prepared(ws.output("scene", "prepared"), load_test_images=True)
+    scene = load_prepared(ws.output("prepare", "prepared"), load_test_images=True)
     splats, _ = load_checkpoint(ws.output("coarse", "model"), scene.norm)
     bg = torch.ones(3)
     centres = torch.stack([f.center for f in scene.train])

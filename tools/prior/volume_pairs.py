@@ -44,11 +44,12 @@ def view_subsets(centers: np.ndarray, forwards: np.ndarray, subsets: int, rng: n
 
 
 def object_volume_pairs(scene_dir: Path, work: Path, subsets: int, resolution: int) -> dict[str, np.ndarray]:
-    from wgs.stages import StageEnv, run_stage
+    from wgs.stages.registry import run_stage
+    from wgs.stages.stage import StageEnv
 
     ws = Workspace(work)
-    run_stage("scene", ws, resolve("prepare", cli={}), StageEnv(torch.device("cpu"), 0, scene_dir=scene_dir))
-    scene = load_prepared(ws.output("scene", "prepared"), load_test_images=True)
+    run_stage("prepare", ws, resolve("prepare", cli={}), StageEnv(torch.device("cpu"), 0, scene_dir=scene_dir))
+    scene = load_prepared(ws.output("prepare", "prepared"), load_test_images=True)
     everything = scene.train + scene.test
     centers = np.stack([f.center.numpy() for f in scene.train])
     forwards = np.stack([f.viewmat[2, :3].numpy() for f in scene.train])

@@ -8,6 +8,7 @@ from pathlib import Path
 import click
 
 from ..fields import option
+from ..stages.registry import STAGE
 from .main import workspace_option
 from .options import config_options, preset_option, settings_options
 
@@ -21,11 +22,11 @@ class AblateSettings:
 @click.command()
 @click.argument("scene", type=click.Path(path_type=Path))
 @settings_options(AblateSettings)
-@config_options("prepare", "views", "downscale", "mirror")
+@config_options("prepare", *STAGE["prepare"].all_options)  # the scene's import, as `wgs all` offers it
 @preset_option
 @workspace_option
 @click.pass_obj
-def ablate(obj, scene, rows, repeats, views, downscale, mirror, preset):
+def ablate(obj, scene, rows, repeats, preset, **prepare_options):
     """The paper's ablation on SCENE: one workspace per row under -w ROOT, and ROOT/ablation.{md,csv,json,png}.
     Every row trains on the same prepared views (--mirror none: the photos alone, as in the paper)."""
     from ..ablation import aggregate, parse_rows, run_ablation, write_outputs
@@ -33,8 +34,6 @@ def ablate(obj, scene, rows, repeats, views, downscale, mirror, preset):
 
     root = obj.ws().root
     row_list = parse_rows(rows)
-    records = run_ablation(
-        obj, scene, root, row_list, repeats, preset, {"views": views, "downscale": downscale, "mirror": mirror}
-    )
+    records = run_ablation(obj, scene, root, row_list, repeats, preset, prepare_options)
     write_outputs(root, aggregate(records, row_list), records)
     results.print((root / "ablation.md").read_text())

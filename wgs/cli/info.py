@@ -21,7 +21,7 @@ def info(obj: RunOptions) -> None:
     ws = obj.ws()
     if not ws.root.is_dir():
         raise WgsError("workspace folder not found", ws.root)
-    m = ws.manifest("scene")
+    m = ws.manifest("prepare")
     if m is not None:
         s = m.get("summary", {})
         res = s.get("resolution")

@@ -17,6 +17,7 @@ import click
 
 from ..config import PRESETS, STAGES, field_types
 from ..fields import facts, option
+from ..stages.registry import REGISTRY
 
 
 def _shown(value: Any) -> str:
@@ -110,27 +111,17 @@ class PresetChoice:
 preset_option = settings_options(PresetChoice)
 
 
-# `wgs all`'s own options: config field -> the stage tables it sets
-ALL_FIELDS: dict[str, tuple[str, ...]] = {
-    "views": ("prepare",),
-    "downscale": ("prepare",),
-    "max_size": ("prepare",),
-    "matcher": ("prepare",),
-    "focal": ("prepare",),
-    "fov": ("prepare",),
-    "cameras": ("prepare",),
-    "masks": ("prepare",),
-    "mirror": ("prepare",),
-    "ensemble": ("coarse",),
-    "strategy": ("mask_data",),
-    "domain": ("finetune",),
-    "use_u": ("finetune",),
-    "prior": ("finetune",),
-    "carve": ("repair",),
-    "shape_revolution": ("repair",),
-    "shape_smooth": ("repair",),
-    "lpips_weights": ("fine", "eval"),
-}
+def all_fields() -> dict[str, tuple[str, ...]]:
+    """`wgs all`'s options from the stages' settings (`Stage.all_options`): field -> the stages it
+    sets, in the registry's order."""
+    out: dict[str, tuple[str, ...]] = {}
+    for stage in REGISTRY:
+        for name in stage.all_options:
+            out[name] = out.get(name, ()) + (stage.name,)
+    return out
+
+
+ALL_FIELDS = all_fields()
 
 
 def all_options(f):

@@ -33,9 +33,9 @@ def suggest(obj: RunOptions, resolution: int) -> None:
     from ..shape.next_view import loose_voxels, preview, suggest_view
 
     ws = obj.ws()
-    if ws.status("scene") == "missing":
+    if ws.status("prepare") == "missing":
         raise WgsError("no prepared scene: run `wgs prepare SCENE` first", ws.root)
-    scene = load_prepared(ws.output("scene", "prepared"))
+    scene = load_prepared(ws.output("prepare", "prepared"))
     if not scene.has_masks:
         raise WgsError("the scene has no masks, and the shape that photos bound comes from masks", ws.root)
     hull = visual_hull_grid(scene.train, resolution, tolerate=0)

@@ -40,7 +40,7 @@ from .strategy import DensifyParams, DensifyStrategy, remove
 @dataclass
 class TrainConfig(DensifyParams):
     """The loop's settings (the coarse, mask-data and fine stages' configs extend them in
-    `wgs.config`); densification fields and defaults come from `strategy.DensifyParams`."""
+    `stages/<name>/settings.py`); densification fields and defaults come from `strategy.DensifyParams`."""
 
     iterations: int = option(2000, "Training iterations.")
     # the loop ends at this iteration (None: at `iterations`); the schedules (learning rate,

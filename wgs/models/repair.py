@@ -27,7 +27,7 @@ RepairFn = Callable[[torch.Tensor], torch.Tensor]  # [B, 3, h, w] model space ->
 
 
 class RepairSettings(Protocol):
-    """What the repair reads of its stage's config (`wgs.config.RepairConfig`)."""
+    """What the repair reads of its stage's config (`stages/repair/settings.py`, `RepairConfig`)."""
 
     strength: float  # SDEdit: the noise level a render is taken to before denoising
     steps: int  # DDIM steps

@@ -18,7 +18,7 @@ from .shared import background_for
 def run_render(ws: Workspace, stage: str, views: str, n_frames: int, device: torch.device, video: bool = False) -> None:
     if ws.manifest(stage) is None:
         raise InputError(f"stage '{stage}' has not run yet", ws.stage_dir(stage))
-    scene = load_prepared(ws.output("scene", "prepared"))
+    scene = load_prepared(ws.output("prepare", "prepared"))
     splats, _ = load_checkpoint(ws.output(stage, "model"), scene.norm, device)
     frames = {"train": scene.train, "test": scene.test, "path": orbit_frames(scene.train, n_frames)}[views]
     out = ws.root / "renders" / f"{stage}_{views}"

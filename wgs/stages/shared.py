@@ -10,16 +10,19 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..config import METHOD, REGISTRY, TABLE_OF, BaselineConfig, CoarseConfig, TrainConfig, time_boxed
+from ..cost import time_boxed
 from ..errors import InputError
 from ..gaussians.init import hull_points, knn_mean_distance, random_init, visual_hull
 from ..gaussians.splats import Splats, create_splats, load_checkpoint
-from ..gaussians.trainer import render_frame
+from ..gaussians.trainer import TrainConfig, render_frame
 from ..models.repair import Repairer, load_repairer, repair_image, symmetrized
 from ..progress import log
 from ..scene.dataset import Frame, PreparedScene
 from ..shape.hull import HullGrid
 from ..wavelet.haar import dwt2
+from .baseline.settings import BaselineConfig
+from .coarse.settings import CoarseConfig
+from .registry import METHOD, STAGE
 
 
 def initial_splats(scene: PreparedScene, cfg: TrainConfig, seed: int, hull: HullGrid | None = None) -> Splats:
@@ -50,7 +53,7 @@ def plain_3dgs_config(
 
 def recorded_config(ws, stage: str) -> Any:
     """The settings `stage` last ran with, from its manifest (defaults where it has none)."""
-    cls = next(s.config for s in REGISTRY if s.name == stage)
+    cls = STAGE[stage].settings
     recorded = (ws.manifest(stage) or {}).get("config") or {}
     names = {f.name for f in dataclasses.fields(cls)}
     return cls(**{k: v for k, v in recorded.items() if k in names})
@@ -84,7 +87,7 @@ def stage_times(ws) -> list[dict[str, Any]]:
                 "wall_time_s": m.get("wall_time_s", 0.0),
                 "cumulative_s": round(cum, 2),
                 "peak_memory_mb": m.get("peak_memory_mb"),
-                "estimate_s": estimate.get(TABLE_OF[st]),
+                "estimate_s": estimate.get(st),
                 "iterations": m.get("iterations"),
                 "stopping": m.get("stopping"),  # where the held-out rule stopped it (None: all its iterations)
             }

@@ -1,6 +1,6 @@
 """The per-object fine-tune of the repair networks (`wgs finetune`): D from scratch or from the
 shipped prior (early-stopped on held-out pairs), U with early stopping against no repair, the
-held-out check and the curves' plot. The stage (`stages.s3_finetune`) reads the pairs and writes
+held-out check and the curves' plot. The stage (`stages/finetune`) reads the pairs and writes
 the models; these take tensors and a `FinetuneConfig`."""
 
 from __future__ import annotations
@@ -11,7 +11,6 @@ from typing import Any
 
 import torch
 
-from ..config import FinetuneConfig
 from ..errors import InputError
 from ..metrics import psnr
 from ..models.data import random_crops
@@ -23,6 +22,7 @@ from ..models.scheduler import DDIMScheduler
 from ..models.storage import load_model_of
 from ..progress import BAR, progress_bar
 from ..resume import Checkpointer, check_interrupt, deferred_stop
+from ..stages.finetune.settings import FinetuneConfig
 from ..threads import adapt as adapt_threads
 from .denoiser import train_denoiser
 from .hf import train_hf

@@ -82,7 +82,7 @@ def site(ws, stage: str | None) -> dict[str, bytes | Path]:
     from ..scene.dataset import load_prepared
 
     stage, ckpt = model_path(ws, stage)
-    scene = load_prepared(ws.output("scene", "prepared"))
+    scene = load_prepared(ws.output("prepare", "prepared"))
     splats, _ = load_checkpoint(ckpt, scene.norm)  # normalised world, like the cameras
     report = ws.output("eval", "report_html")
     frame = viewer_frame([f.viewmat.double().numpy() for f in scene.train])

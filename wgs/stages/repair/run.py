@@ -16,28 +16,28 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..config import OUTPUTS, RepairConfig
-from ..errors import InputError
-from ..gaussians.trainer import render_frame
-from ..io import atomic_write_json
-from ..io.exr import write_subbands
-from ..io.images import write_png
-from ..masking import grow
-from ..models.repair import load_repairer
-from ..models.storage import load_model
-from ..progress import log
-from ..scene.dataset import load_prepared
-from ..scene.orbit import novel_views, sphere_views
-from ..shape.carve import carve, carve_with_volume, sure_background
-from ..shape.features import hull_channels, predict_object, silhouette_inputs
-from ..shape.hull import HullGrid, save_grid, silhouette, visual_hull_grid
-from ..shape.own_shape import describe as describe_own_shape
-from ..shape.own_shape import own_shape
-from ..shape.scores import HULL_CUT_LIMIT, hull_cut
-from ..weights import WEIGHTS_S, WEIGHTS_V
-from ..workspace import StageRun, Workspace
-from . import StageEnv
-from .shared import background_for, coarse_members, ensemble_repair
+from ...errors import InputError
+from ...gaussians.trainer import render_frame
+from ...io import atomic_write_json
+from ...io.exr import write_subbands
+from ...io.images import write_png
+from ...masking import grow
+from ...models.repair import load_repairer
+from ...models.storage import load_model
+from ...progress import log
+from ...scene.dataset import load_prepared
+from ...scene.orbit import novel_views, sphere_views
+from ...shape.carve import carve, carve_with_volume, sure_background
+from ...shape.features import hull_channels, predict_object, silhouette_inputs
+from ...shape.hull import HullGrid, save_grid, silhouette, visual_hull_grid
+from ...shape.own_shape import describe as describe_own_shape
+from ...shape.own_shape import own_shape
+from ...shape.scores import HULL_CUT_LIMIT, hull_cut
+from ...weights import WEIGHTS_S, WEIGHTS_V
+from ...workspace import StageRun, Workspace
+from ..shared import background_for, coarse_members, ensemble_repair
+from ..stage import StageEnv
+from .settings import STAGE, RepairConfig
 
 
 def contact_sheet(rows: list[tuple[torch.Tensor, torch.Tensor]]) -> np.ndarray:
@@ -157,7 +157,7 @@ def run_repair(ws: Workspace, cfg: RepairConfig, env: StageEnv, force: bool = Fa
 
 def repair_views(run: StageRun, ws: Workspace, cfg: RepairConfig, device: torch.device, seed: int) -> str:
     t0 = time.perf_counter()
-    scene = load_prepared(ws.output("scene", "prepared"))
+    scene = load_prepared(ws.output("prepare", "prepared"))
     members = coarse_members(ws, scene, device)
     repairer = load_repairer(ws.output("finetune", "models"), cfg, device, seed)
     domain, U = repairer.meta.domain, repairer.U
@@ -185,7 +185,7 @@ def repair_views(run: StageRun, ws: Workspace, cfg: RepairConfig, device: torch.
                 probs.append(shape.predict(frame, first, alpha))
                 may_be &= ~sure_background(probs[-1], cfg)
             write_png(run.output("silhouettes", frame.name), may_be.float()[..., None].expand(-1, -1, 3).numpy())
-            extra["silhouette"] = f"{OUTPUTS['repair']['silhouettes']}/{frame.name}"
+            extra["silhouette"] = f"{STAGE.outputs['silhouettes']}/{frame.name}"
         write_subbands(run.path("corrupted", f"{stem}.exr"), bands_in)
         write_subbands(run.path("repaired", f"{stem}.exr"), bands_out)
         write_subbands(run.output("pseudo", f"{stem}.exr"), {"RGB": fixed.numpy()}, half=False)

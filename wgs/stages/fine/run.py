@@ -7,22 +7,22 @@ from collections.abc import Callable
 
 import torch
 
-from ..config import FineConfig
-from ..curves import test_probe, write_curve
-from ..errors import InputError
-from ..gaussians.splats import VIEWER_SH_DEGREE, Splats, export_ply, load_checkpoint, save_checkpoint, to_world
-from ..gaussians.trainer import PseudoViews, train_gaussians
-from ..io import read_json
-from ..io.exr import read_subbands
-from ..io.images import read_image
-from ..progress import log
-from ..scene.camera import Camera
-from ..scene.dataset import Frame, PreparedScene, load_prepared
-from ..shape.hull import load_grid
-from ..shape.scores import HULL_CUT_LIMIT, hull_cut
-from ..workspace import StageRun, Workspace
-from . import StageEnv
-from .shared import background_for, ensemble_repair, initial_splats, workspace_repairer
+from ...curves import test_probe, write_curve
+from ...errors import InputError
+from ...gaussians.splats import VIEWER_SH_DEGREE, Splats, export_ply, load_checkpoint, save_checkpoint, to_world
+from ...gaussians.trainer import PseudoViews, train_gaussians
+from ...io import read_json
+from ...io.exr import read_subbands
+from ...io.images import read_image
+from ...progress import log
+from ...scene.camera import Camera
+from ...scene.dataset import Frame, PreparedScene, load_prepared
+from ...shape.hull import load_grid
+from ...shape.scores import HULL_CUT_LIMIT, hull_cut
+from ...workspace import StageRun, Workspace
+from ..shared import background_for, ensemble_repair, initial_splats, workspace_repairer
+from ..stage import StageEnv
+from .settings import FineConfig
 
 
 def pseudo_schedule(cfg: FineConfig):
@@ -68,7 +68,7 @@ def lpips_for_training(cfg: FineConfig, device: torch.device):
     or why the term is off."""
     if cfg.lpips_weight <= 0:
         return None, {"used": False, "why": "lpips_weight is 0"}
-    from ..lpips import LPIPS, LpipsUnavailable
+    from ...lpips import LPIPS, LpipsUnavailable
 
     try:
         fn = LPIPS("vgg", cfg.lpips_weights).to(device)
@@ -143,7 +143,7 @@ class FineInputs:
 
 
 def fine_inputs(ws: Workspace, cfg: FineConfig, device: torch.device, seed: int) -> FineInputs:
-    scene = load_prepared(ws.output("scene", "prepared"))
+    scene = load_prepared(ws.output("prepare", "prepared"))
     splats, start = starting_splats(ws, scene, cfg, seed)
     frames, weights = load_pseudo_views(ws)
     lpips_fn, lpips_term = lpips_for_training(cfg, device)

@@ -11,7 +11,6 @@ from typing import Any
 import torch
 
 from ... import __version__
-from ...config import EvalConfig
 from ...gaussians.splats import load_checkpoint
 from ...gaussians.trainer import render_frame
 from ...io import atomic_write_json
@@ -22,10 +21,11 @@ from ...scene.dataset import load_prepared
 from ...scene.orbit import orbit_frames
 from ...shape.hull import load_grid
 from ...workspace import StageRun, Workspace
-from .. import StageEnv
 from ..shared import background_for, coarse_members, stage_times
+from ..stage import StageEnv
 from .report import curve_points, summary_lines, write_html, write_report
 from .scoring import METRICS_DOC, RepairGain, evaluate_model, localised, spread, summarise
+from .settings import EvalConfig
 from .shape import masks_note, shape_reference
 
 
@@ -37,12 +37,12 @@ def run_eval(ws: Workspace, cfg: EvalConfig, env: StageEnv, force: bool = False)
         {"final": env.final},
         force,
         lambda run: evaluate(run, ws, cfg, env.device, env.final, env.seed),
-        requires=("scene", "coarse", env.final),
+        requires=("prepare", "coarse", env.final),
     )
 
 
 def evaluate(run: StageRun, ws: Workspace, cfg: EvalConfig, device: torch.device, final: str, seed: int) -> str:
-    scene = load_prepared(ws.output("scene", "prepared"), load_test_images=True)
+    scene = load_prepared(ws.output("prepare", "prepared"), load_test_images=True)
     kind = "test" if scene.test else "training"  # without test views: what the scene itself can show
     if not scene.test:
         log("eval: no test views: the models' fit at the training photos and the leave-one-out silhouettes")
@@ -210,7 +210,7 @@ def results_record(
         "estimate_s": ws.run_record().get("estimate"),
         "budget_s": ws.run_record().get("budget_s"),
     }
-    source = ((ws.manifest("scene") or {}).get("summary") or {}).get("source")
+    source = ((ws.manifest("prepare") or {}).get("summary") or {}).get("source")
     res.update(
         {
             "scene": source,

@@ -180,14 +180,14 @@ def write_html(
     if lpips_note:
         notes.append(f"LPIPS not computed: {lpips_note}")
     contact = ws.output("repair", "contact_sheet")
-    masks_sheet, masks = ws.output("scene", "masks_sheet"), None
+    masks_sheet, masks = ws.output("prepare", "masks_sheet"), None
     if masks_sheet.is_file():
-        used = (read_json(ws.output("scene", "info")).get("masks") or {}).get("source") == "auto"
+        used = (read_json(ws.output("prepare", "info")).get("masks") or {}).get("source") == "auto"
         caption = (
             "The training photos with their automatic masks' outline (green), used for training."
             if used
             else "The automatic masks, not used (see above): the outline they proposed; correct the masks "
-            f"in {ws.output('scene', 'masks_proposed')} and give them back with --masks DIR."
+            f"in {ws.output('prepare', 'masks_proposed')} and give them back with --masks DIR."
         )
         masks = (caption, masks_sheet)
     write_report_html(

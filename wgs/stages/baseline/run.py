@@ -5,14 +5,14 @@ plot: what the same time buys without WaveletGaussian."""
 
 from __future__ import annotations
 
-from ..config import BaselineConfig
-from ..curves import test_probe, write_curve
-from ..gaussians.splats import save_checkpoint
-from ..gaussians.trainer import train_gaussians
-from ..scene.dataset import load_prepared
-from ..workspace import StageRun, Workspace
-from . import StageEnv
-from .shared import background_for, initial_splats, plain_3dgs_config, recorded_config, stage_times
+from ...curves import test_probe, write_curve
+from ...gaussians.splats import save_checkpoint
+from ...gaussians.trainer import train_gaussians
+from ...scene.dataset import load_prepared
+from ...workspace import StageRun, Workspace
+from ..shared import background_for, initial_splats, plain_3dgs_config, recorded_config, stage_times
+from ..stage import StageEnv
+from .settings import BaselineConfig
 
 
 def run_baseline(ws: Workspace, cfg: BaselineConfig, env: StageEnv, force: bool = False) -> bool:
@@ -23,13 +23,13 @@ def run_baseline(ws: Workspace, cfg: BaselineConfig, env: StageEnv, force: bool 
         {"seed": env.seed},
         force,
         lambda run: train_baseline(run, ws, cfg, env),
-        requires=("scene", "coarse"),
+        requires=("prepare", "coarse"),
     )
 
 
 def train_baseline(run: StageRun, ws: Workspace, cfg: BaselineConfig, env: StageEnv) -> str:
-    scene = load_prepared(ws.output("scene", "prepared"))
-    budget = sum(r["wall_time_s"] for r in stage_times(ws) if r["stage"] != "scene")
+    scene = load_prepared(ws.output("prepare", "prepared"))
+    budget = sum(r["wall_time_s"] for r in stage_times(ws) if r["stage"] != "prepare")
     coarse_s = ws.finished("coarse").get("train_seconds") or budget  # G_c alone, without the other members
     train_cfg = plain_3dgs_config(recorded_config(ws, "coarse"), budget, coarse_s, cfg.headroom)
     probe, names = test_probe(ws, scene, train_cfg, background_for(scene), env.device)

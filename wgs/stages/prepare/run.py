@@ -10,17 +10,16 @@ from pathlib import Path
 
 import torch
 
-from ..config import CoarseConfig, PrepareConfig
-from ..errors import InputError
-from ..gaussians.pose_refine import CameraCorrections
-from ..gaussians.trainer import train_gaussians
-from ..io import atomic_write_bytes, atomic_write_json, read_json
-from ..io.images import image_size, write_png
-from ..progress import log
-from ..scene.colmap import read_model, write_model
-from ..scene.dataset import load_prepared
-from ..scene.formats import detect_format
-from ..scene.prepare import (
+from ...errors import InputError
+from ...gaussians.pose_refine import CameraCorrections
+from ...gaussians.trainer import train_gaussians
+from ...io import atomic_write_bytes, atomic_write_json, read_json
+from ...io.images import image_size, write_png
+from ...progress import log
+from ...scene.colmap import read_model, write_model
+from ...scene.dataset import load_prepared
+from ...scene.formats import detect_format
+from ...scene.prepare import (
     MASK_MIN_FRACTION,
     LoadedViews,
     downscale_for,
@@ -29,16 +28,18 @@ from ..scene.prepare import (
     scene_inputs_digest,
     write_prepared,
 )
-from ..scene.sfm import find_photos, pose_photos
-from ..scene.types import RawScene
-from ..segment.accept import judged_automatic_masks
-from ..segment.automask import mask_sheet
-from ..shape.scores import HULL_CUT_LIMIT, leave_one_out, mean_scores
-from ..shape.symmetry import mirror_check
-from ..threads import thread_count
-from ..workspace import StageRun, Workspace
-from . import StageEnv
-from .shared import initial_splats
+from ...scene.sfm import find_photos, pose_photos
+from ...scene.types import RawScene
+from ...segment.accept import judged_automatic_masks
+from ...segment.automask import mask_sheet
+from ...shape.scores import HULL_CUT_LIMIT, leave_one_out, mean_scores
+from ...shape.symmetry import mirror_check
+from ...threads import thread_count
+from ...workspace import StageRun, Workspace
+from ..coarse.settings import CoarseConfig
+from ..shared import initial_splats
+from ..stage import StageEnv
+from .settings import PrepareConfig
 
 SFM_DIR = "sfm"
 SFM_INPUTS = "inputs.sha256"
@@ -137,7 +138,7 @@ def run_prepare(ws: Workspace, cfg: PrepareConfig, env: StageEnv, force: bool = 
             run.record["working_size"] = why
         return import_scene(run, ws, scene_dir, scene, dataclasses.replace(cfg, downscale=k), force, env, learned)
 
-    return ws.run_staged("scene", cfg, extra, force, body)
+    return ws.run_staged("prepare", cfg, extra, force, body)
 
 
 def working_downscale(scene: RawScene, cfg: PrepareConfig, env: StageEnv) -> tuple[int, str | None]:
@@ -154,7 +155,7 @@ def working_downscale(scene: RawScene, cfg: PrepareConfig, env: StageEnv) -> tup
         )
     if env.working_size is None:
         return 1, None
-    return env.working_size(v.width, v.height, len(scene.train), len(scene.test))
+    return env.working_size(v.width, v.height, len(scene.train), len(scene.test), cfg.masks != "none")
 
 
 def scene_masks(views: LoadedViews, cfg: PrepareConfig, run: StageRun) -> tuple[list, dict, list]:
@@ -340,7 +341,7 @@ def import_scene(
 ) -> str:
     """`check_poses`: poses from learned matching of a few photos, which the masks then check and
     training then corrects (`correct_cameras`, on `env.device`)."""
-    held = ((ws.manifest("scene") or {}).get("summary") or {}).get("source")
+    held = ((ws.manifest("prepare") or {}).get("summary") or {}).get("source")
     if held is not None and Path(held) != scene_dir.resolve() and not force:
         raise InputError(
             f"this workspace holds another scene ({held}): use a new -w folder, or add --force "
@@ -353,7 +354,7 @@ def import_scene(
     views = load_views(scene, cfg.downscale or 1, cfg.max_pixels, run.dir)
     masks, mask_info, judged = scene_masks(views, cfg, run)
     info = write_prepared(scene, views, masks, mask_info, judged, run.dir)
-    log(mask_line(info["masks"], ws.output("scene", "masks_sheet"), ws.output("scene", "masks_proposed")))
+    log(mask_line(info["masks"], ws.output("prepare", "masks_sheet"), ws.output("prepare", "masks_proposed")))
     if check_poses and info["has_masks"] and info["masks"]["source"] != "auto":
         poses_agree_with_masks(run.dir, scene_dir)
         if cfg.cameras == "correct":
@@ -379,4 +380,4 @@ def import_scene(
         "masks": info["masks"],
         "mirror": info.get("mirror"),
     }
-    return f"prepare: wrote {ws.stage_dir('scene')}"
+    return f"prepare: wrote {ws.stage_dir('prepare')}"

@@ -10,22 +10,22 @@ import math
 
 import torch
 
-from ..config import CoarseConfig
-from ..curves import test_probe, write_curve
-from ..gaussians.splats import VIEWER_SH_DEGREE, Splats, export_ply, save_checkpoint, to_world
-from ..gaussians.stopping import Curve, mean_curve, pilot_cap, plateau_iteration, smoothed, still_gaining
-from ..gaussians.trainer import Probe, TrainResult, render_frame, train_gaussians
-from ..io import atomic_write_json
-from ..io.exr import write_subbands
-from ..io.images import write_png
-from ..metrics import psnr
-from ..progress import log, progress_bar
-from ..resume import Checkpointer
-from ..scene.dataset import PreparedScene, composite, halved, load_prepared
-from ..threads import map_in_processes, side_by_side
-from ..workspace import StageRun, Workspace
-from . import StageEnv
-from .shared import background_for, initial_splats, member_file, subbands_hwc
+from ...curves import test_probe, write_curve
+from ...gaussians.splats import VIEWER_SH_DEGREE, Splats, export_ply, save_checkpoint, to_world
+from ...gaussians.stopping import Curve, mean_curve, pilot_cap, plateau_iteration, smoothed, still_gaining
+from ...gaussians.trainer import Probe, TrainResult, render_frame, train_gaussians
+from ...io import atomic_write_json
+from ...io.exr import write_subbands
+from ...io.images import write_png
+from ...metrics import psnr
+from ...progress import log, progress_bar
+from ...resume import Checkpointer
+from ...scene.dataset import PreparedScene, composite, halved, load_prepared
+from ...threads import map_in_processes, side_by_side
+from ...workspace import StageRun, Workspace
+from ..shared import background_for, initial_splats, member_file, subbands_hwc
+from ..stage import StageEnv
+from .settings import CoarseConfig
 
 
 def write_coarse_outputs(run: StageRun, scene: PreparedScene, splats: Splats, device: torch.device) -> dict:
@@ -53,7 +53,7 @@ def train_model(
 ) -> tuple[TrainResult, list[str]]:
     """One coarse model from `seed` (with the test probe: G_c); its result and the probe's views.
     Module level so that a spawned process can run it."""
-    scene = load_prepared(ws.output("scene", "prepared"))
+    scene = load_prepared(ws.output("prepare", "prepared"))
     torch.manual_seed(seed)
     test, names = test_probe(ws, scene, cfg, background_for(scene), device) if probe else (None, [])
     res = train_gaussians(
@@ -76,7 +76,7 @@ def train_pilot(ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: in
     (its visual hull from the other photos' masks), its PSNR at that photo every `cfg.stop_every`
     iterations until it stops gaining, or until `pilot_cap`, past which its curve cannot shorten
     the run (`gaussians.stopping`). Module level so that a spawned process can run it."""
-    scene = load_prepared(ws.output("scene", "prepared"))
+    scene = load_prepared(ws.output("prepare", "prepared"))
     fold = dataclasses.replace(scene, train=[f for f in scene.train if f.name != held_out])
     bg = background_for(scene)
     target = halved(next(f for f in scene.train if f.name == held_out))
@@ -154,7 +154,7 @@ def held_out_stop(
 
 
 def train_coarse(run: StageRun, ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: int) -> str:
-    scene = load_prepared(ws.output("scene", "prepared"))
+    scene = load_prepared(ws.output("prepare", "prepared"))
     workers = side_by_side(
         cfg.ensemble, cfg.iterations, scene.train[0].width * scene.train[0].height, device.type == "cpu"
     )

@@ -9,15 +9,14 @@ from typing import Any
 
 import torch
 
-from ..config import FinetuneConfig
-from ..errors import InputError
-from ..io import atomic_write_json, read_json
-from ..io.exr import read_subbands
-from ..models.data import hwc, load_pairs, random_crops
-from ..models.hf_unet import HFUNet
-from ..models.storage import load_model_of, save_model
-from ..progress import BAR, progress_bar
-from ..training.per_object import (
+from ...errors import InputError
+from ...io import atomic_write_json, read_json
+from ...io.exr import read_subbands
+from ...models.data import hwc, load_pairs, random_crops
+from ...models.hf_unet import HFUNet
+from ...models.storage import load_model_of, save_model
+from ...progress import BAR, progress_bar
+from ...training.per_object import (
     finetune_prior_d,
     heldout_check,
     plot_curves,
@@ -25,11 +24,12 @@ from ..training.per_object import (
     train_hf_unet,
     train_scratch_d,
 )
-from ..wavelet.haar import idwt2
-from ..weights import WEIGHTS as PRIOR_WEIGHTS
-from ..workspace import StageRun, Workspace
-from . import StageEnv
-from .shared import subband_file
+from ...wavelet.haar import idwt2
+from ...weights import WEIGHTS as PRIOR_WEIGHTS
+from ...workspace import StageRun, Workspace
+from ..shared import subband_file
+from ..stage import StageEnv
+from .settings import FinetuneConfig
 
 
 def load_hf_data(ws: Workspace) -> tuple[torch.Tensor, torch.Tensor, list[str]]:
@@ -85,7 +85,7 @@ def finetune(run: StageRun, ws: Workspace, cfg: FinetuneConfig, device: torch.de
 
 def train_lora(run: StageRun, cfg: FinetuneConfig, clean, bad, device, gen) -> dict[str, Any]:
     """SD 1.5 + ControlNet-tile with LoRA on the pairs shown as images in [0, 1] (LL / 2 for J = 1)."""
-    from ..models import controlnet_lora as cl
+    from ...models import controlnet_lora as cl
 
     if not cfg.sd_model or not cfg.controlnet:
         raise InputError("--diffusion controlnet needs --sd-model PATH and --controlnet PATH (local folders)")

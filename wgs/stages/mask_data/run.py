@@ -15,17 +15,17 @@ from typing import Any
 
 import torch
 
-from ..config import MaskDataConfig
-from ..errors import InputError
-from ..gaussians.splats import Splats
-from ..gaussians.trainer import render_frame, train_gaussians
-from ..io import atomic_write_json, read_json
-from ..io.exr import write_subbands
-from ..masking import make_region_masks
-from ..scene.dataset import PreparedScene, composite, load_prepared
-from ..workspace import StageRun, Workspace
-from . import StageEnv
-from .shared import background_for, initial_splats, subband_file, subbands_hwc
+from ...errors import InputError
+from ...gaussians.splats import Splats
+from ...gaussians.trainer import render_frame, train_gaussians
+from ...io import atomic_write_json, read_json
+from ...io.exr import write_subbands
+from ...masking import make_region_masks
+from ...scene.dataset import PreparedScene, composite, load_prepared
+from ...workspace import StageRun, Workspace
+from ..shared import background_for, initial_splats, subband_file, subbands_hwc
+from ..stage import StageEnv
+from .settings import MaskDataConfig
 
 
 class PairWriter:
@@ -156,7 +156,7 @@ def run_mask_data(ws: Workspace, cfg: MaskDataConfig, env: StageEnv, force: bool
 
 
 def make_pairs(run: StageRun, ws: Workspace, cfg: MaskDataConfig, device: torch.device, seed: int) -> str:
-    scene = load_prepared(ws.output("scene", "prepared"))
+    scene = load_prepared(ws.output("prepare", "prepared"))
     torch.manual_seed(seed)
     writer = PairWriter(run, scene, device, cfg.strategy)
     t0 = time.perf_counter()

@@ -1,0 +1,106 @@
+"""The coarse stage's settings, its facts for the registry and its cost model."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from ...cost import (
+    EXPECTED_PLATEAU,
+    Calibration,
+    SceneFacts,
+    StageCost,
+    cover_factor,
+    loop_s,
+    side_by_side_share,
+)
+from ...fields import option
+from ...gaussians.stopping import StopParams, pilot_cap
+from ...gaussians.trainer import TrainConfig
+from ...threads import side_by_side
+from ..stage import FAST_TRAINING, MODEL_OUTPUTS, CurveConfig, Stage, StageEnv
+
+FACTOR = 1.0  # time / modelled work on whole runs (lego at 200 px, ethiopianHead at 307 px; docs/speed.md)
+
+
+@dataclass
+class CoarseConfig(CurveConfig, StopParams, TrainConfig):
+    iterations: int = 1500
+    # coarse models trained with seeds seed .. seed + ensemble - 1 (the first is G_c); the repair
+    # averages their repaired renders: their sparse-view artifacts differ, the object does not
+    # (docs/repair-prior.md)
+    ensemble: int = option(
+        6,
+        "Coarse models from consecutive seeds; the repair averages their repaired renders (1: G_c alone).",
+        bounds=(1, None),
+    )
+    half_size_until: float = 0.3
+
+
+def run(ws: Any, cfg: CoarseConfig, env: StageEnv, force: bool) -> bool:
+    from .run import run_coarse  # on first use: the stage loads the library
+
+    return run_coarse(ws, cfg, env, force)
+
+
+def pilots_s(cal: Calibration, cfg: CoarseConfig, facts: SceneFacts, workers: int) -> float:
+    """The held-out rule's pilots: one per photo (at most `stop_pilots`) at half size, each until
+    `stop_patience` past the expected plateau, at most `pilot_cap`; 0 where the rule is off."""
+    if cfg.stop != "held-out" or cfg.max_seconds:
+        return 0.0
+    length = min(pilot_cap(cfg.iterations, cfg.stop_margin, cfg.stop_patience), EXPECTED_PLATEAU + cfg.stop_patience)
+    return (
+        math.ceil(min(facts.n_train, cfg.stop_pilots) / workers)
+        * length
+        * cal.view_s(facts.pixels / 4)
+        * side_by_side_share(workers)
+    )
+
+
+def cost(cal: Calibration, cfgs: Mapping[str, Any], facts: SceneFacts, before: Mapping[str, float]) -> StageCost:
+    """The ensemble's models, side by side where that pays, after the held-out rule's pilots."""
+    cfg: CoarseConfig = cfgs["coarse"]
+    on_cpu = cal.device.split(":")[0] == "cpu"
+    workers = side_by_side(cfg.ensemble, cfg.iterations, facts.pixels, on_cpu)
+    pilots = side_by_side(min(facts.n_train, cfg.stop_pilots), cfg.iterations, facts.pixels // 4, on_cpu)
+    factor = FACTOR * cover_factor(facts)
+    return StageCost(
+        fixed_steps=25,
+        loops=math.ceil(cfg.ensemble / workers),
+        loop_s=loop_s(cal, cfg, facts.pixels) * side_by_side_share(workers),
+        factor=factor,
+        other_s=factor * pilots_s(cal, cfg, facts, pilots),
+    )
+
+
+STAGE = Stage(
+    "coarse",
+    "1_coarse",
+    CoarseConfig,
+    ("prepare",),
+    run,
+    "Train the coarse 3DGS G_c on the training views.",
+    cost,
+    outputs={
+        **MODEL_OUTPUTS,
+        "members": "members",  # the ensemble's other models, members/ckpt_<i>.pt (i >= 1)
+        "subbands": "subbands",  # Haar subbands of the training views, subbands/{ref,render}/<stem>.exr
+    },
+    presets={
+        # 400 iterations leave the held-out rule's pilots (about a model's cost) nothing to save
+        "fast": {**FAST_TRAINING, "iterations": 400, "refine_stop": 300, "ensemble": 1, "stop": "iterations"},
+        "paper": {
+            "iterations": 10000,
+            "refine_stop": 7000,
+            "sh_degree": 3,
+            "max_gaussians": 1000000,
+            "init_points": 100000,
+            "hull_resolution": 128,
+            "reset_every": 3000,
+            "stop": "iterations",  # the paper's schedule, run to its end
+        },
+    },
+    all_options=("ensemble",),
+)
