@@ -8,8 +8,9 @@ import torch
 from conftest import ring_w2c
 
 from wgs.curves import probe_views
+from wgs.gaussians.callbacks import Probe
 from wgs.gaussians.splats import create_splats
-from wgs.gaussians.trainer import Probe, TrainConfig, train_gaussians
+from wgs.gaussians.trainer import TrainConfig, train_gaussians
 from wgs.scene.dataset import Frame
 
 

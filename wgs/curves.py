@@ -8,7 +8,8 @@ from typing import Any
 
 import torch
 
-from .gaussians.trainer import Probe, TrainResult, render_frame
+from .gaussians.callbacks import Probe
+from .gaussians.trainer import TrainResult, render_frame
 from .io import atomic_write_json, read_json
 from .metrics import psnr, ssim
 from .scene.dataset import PreparedScene, composite, load_frame_images

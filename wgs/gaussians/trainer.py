@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -27,9 +26,10 @@ from ..fields import option
 from ..masking import grow
 from ..metrics import ssim_map_fast
 from ..progress import BAR, progress_bar
-from ..resume import Checkpointer, check_interrupt, deferred_stop, rng_state, set_rng_state
+from ..resume import Checkpointer, check_interrupt, deferred_stop
 from ..scene.dataset import Frame, halved
 from ..threads import adapt as adapt_threads
+from .callbacks import LoopState, Probe, ProbePoints, TimeBox, TrainingClock
 from .init import floater_mask
 from .pose_refine import CameraCorrections
 from .render import rasterize
@@ -91,20 +91,9 @@ class PseudoViews:
     lpips: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None
     lpips_weight: float = 0.0
 
-
-@dataclass
-class Probe:
-    """Quality during training: fn(splats) -> metrics (e.g. test PSNR), run every `every_s` seconds
-    of training time (and every `every_iterations` iterations when > 0), at the start and at the
-    end; its own time is left out of the training clock. A probe that took p seconds is followed by
-    the next one no sooner than p / `max_share` training seconds later, so that on large views
-    (ethiopianHead at 666 px: 4.8 s a probe) probing stays a small share of the wall time."""
-
-    fn: Callable[[Splats], dict[str, float]]
-    every_s: float
-    every_iterations: int = 0
-    max_share: float = 0.1
-    stop: Callable[[list[dict[str, float]]], bool] | None = None  # after a probe: True ends the loop
+    def due(self, it: int, sched: int) -> bool:
+        """Whether iteration `it` (at schedule position `sched`) trains on a pseudo view too."""
+        return it % self.every == 0 and self.schedule(sched) > 0
 
 
 @dataclass
@@ -196,10 +185,18 @@ def train_gaussians(
     cameras: corrections of the frames' cameras, trained with the model (`pose_refine`).
     """
     params = {k: v.detach().to(device).clone().requires_grad_(True) for k, v in splats.items()}
-    optimizers = make_optimizers(params, cfg, extent)
     strategy = strategy_from(cfg, extent)
-    state = strategy.initial_state()
-    gen = torch.Generator().manual_seed(seed)
+    clock = TrainingClock()
+    loop = LoopState(
+        params,
+        make_optimizers(params, cfg, extent),
+        strategy.initial_state(),
+        torch.Generator().manual_seed(seed),
+        clock,
+        ProbePoints(probe, clock),
+        cameras,
+    )
+    gen = loop.generator
     sizes = [TrainingViews(frames, device, has_masks, cfg.outline_margin_px)]  # full size, then half
     pseudo_sizes = [pseudo.frames if pseudo is not None else []]
     if cfg.half_size_until > 0:
@@ -207,80 +204,25 @@ def train_gaussians(
         pseudo_sizes.append([halved(f) for f in pseudo_sizes[0]])
     max_deg = int(math.isqrt(1 + params["shN"].shape[1])) - 1
     decay = (cfg.lr_means_final / cfg.lr_means) ** (1.0 / max(cfg.iterations, 1))
-    losses: list[float] = []
-    order: list[int] = []
-    t0 = time.perf_counter()
-    it = 0
-    sched = prev_sched = 0  # schedule position: the iteration, or the time fraction of a time budget
-    finished = False
-    curve: list[dict[str, float]] = []
-    probe_s = 0.0
+    time_box = TimeBox(cfg.iterations, cfg.max_seconds)
     saved = checkpoint.load() if checkpoint is not None else None
     if saved is not None:
-        params = {k: v.to(device).requires_grad_(True) for k, v in saved["params"].items()}
-        optimizers = make_optimizers(params, cfg, extent)
-        if not saved["finished"]:
-            for k, opt in optimizers.items():
-                opt.load_state_dict(saved["optimizers"][k])
-            state = {k: (None if v is None else v.to(device)) for k, v in saved["strategy"].items()}
-        gen.set_state(saved["generator"])
-        set_rng_state(saved["rng"])
-        losses, order, it, sched = list(saved["losses"]), list(saved["order"]), saved["it"], saved["sched"]
-        t0 -= saved["elapsed"]
-        finished = saved["finished"]
-        curve, probe_s = list(saved.get("curve", [])), saved.get("probe_s", 0.0)
-        if cameras is not None:
-            cameras.load_state_dict(saved["cameras"])
-
-    probe_every_s = probe.every_s if probe is not None else 0.0
-
-    def measure() -> None:
-        """One probe point; the clock is moved on by the probe's own time."""
-        nonlocal t0, probe_s, probe_every_s
-        assert probe is not None
-        t_start = time.perf_counter()
-        with torch.no_grad():
-            metrics = probe.fn({k: v.detach() for k, v in params.items()})
-        curve.append({"seconds": t_start - t0, "iteration": it, **metrics})
-        took = time.perf_counter() - t_start
-        t0 += took
-        probe_s += took
-        probe_every_s = max(probe.every_s, took / probe.max_share)
-
-    def snapshot() -> dict:
-        out = {
-            "params": {k: v.detach().cpu() for k, v in params.items()},
-            "generator": gen.get_state(),
-            "rng": rng_state(),
-            "losses": losses,
-            "order": order,
-            "it": it,
-            "sched": sched,
-            "elapsed": time.perf_counter() - t0,
-            "finished": finished,
-            "curve": curve,
-            "probe_s": probe_s,
-        }
-        if cameras is not None:
-            out["cameras"] = cameras.state_dict()
-        if not finished:  # a finished loop needs no moments: its final save stays the size of the model
-            out["optimizers"] = {k: o.state_dict() for k, o in optimizers.items()}
-            out["strategy"] = {k: (None if v is None else v.cpu()) for k, v in state.items()}
-        return out
+        loop.restore(saved, device, lambda restored: make_optimizers(restored, cfg, extent))
+    params, optimizers, state = loop.params, loop.optimizers, loop.strategy
+    losses, order = loop.losses, loop.order
 
     last = min(cfg.end_iteration or cfg.iterations, cfg.iterations)
+    it = loop.it
     with progress_bar(desc, last) as prog, deferred_stop():
         prog.update(BAR, completed=it)
-        if probe is not None and not curve:
-            measure()
-        for it in range(it + 1, (it if finished else last) + 1):  # noqa: B020 - resumes the count
+        loop.probes.at_start(params, it)
+        for it in range(it + 1, (it if loop.finished else last) + 1):  # noqa: B020 - resumes the count
             adapt_threads()
-            prev_sched = sched
-            sched = it
-            if cfg.max_seconds:
-                sched = max(it, int(cfg.iterations * (time.perf_counter() - t0) / cfg.max_seconds))
+            prev_sched = loop.sched
+            sched = loop.sched = time_box.schedule(it, clock)
+            loop.it = it
             if not order:
-                order = torch.randperm(len(frames), generator=gen).tolist()
+                order.extend(torch.randperm(len(frames), generator=gen).tolist())
             i = order.pop()
             half = sched <= cfg.half_size_until * cfg.iterations and len(sizes) > 1
             views = sizes[int(half)]
@@ -307,7 +249,7 @@ def train_gaussians(
                     loss = photometric_loss(rgb, target, cfg.ssim_weight, weight)
                     if mask is not None and cfg.mask_weight > 0:
                         loss = loss + cfg.mask_weight * weighted_mean((alpha[..., 0] - mask).abs(), weight)
-            if pseudo is not None and it % pseudo.every == 0 and pseudo.schedule(sched) > 0:
+            if pseudo is not None and pseudo.due(it, sched):
                 with record_function("wgs:pseudo_view"):
                     loss = loss + pseudo_loss(params, pseudo, pseudo_sizes[int(half)], it, sched, deg, device, cfg)
             with record_function("wgs:backward"):
@@ -347,7 +289,7 @@ def train_gaussians(
             if on_step is not None:
                 on_step(it, {k: v.detach() for k, v in params.items()})
             if it % cfg.log_every == 0 or it == last:
-                rate = it / max(time.perf_counter() - t0, 1e-9)
+                rate = it / max(clock.seconds(), 1e-9)
                 recent = losses[-cfg.log_every :]
                 prog.update(
                     BAR,
@@ -355,21 +297,14 @@ def train_gaussians(
                     status=f"loss {sum(recent) / len(recent):.4f}  "
                     f"{params['means'].shape[0]} gaussians  {rate:.1f} it/s",
                 )
-            finished = it == last or bool(cfg.max_seconds and time.perf_counter() - t0 > cfg.max_seconds)
-            if probe is not None and (
-                finished
-                or time.perf_counter() - t0 - curve[-1]["seconds"] >= probe_every_s
-                or 0 < probe.every_iterations <= it - curve[-1]["iteration"]
-            ):
-                measure()
-                finished = finished or bool(probe.stop and probe.stop(curve))
-            if checkpoint is not None and (finished or checkpoint.due()):
-                checkpoint.save(snapshot())
-            check_interrupt(desc, it, checkpoint, snapshot)
-            if finished:
+            loop.finished = loop.probes.after_step(params, it, it == last or time_box.over(clock))
+            if checkpoint is not None and (loop.finished or checkpoint.due()):
+                checkpoint.save(loop.snapshot())
+            check_interrupt(desc, it, checkpoint, loop.snapshot)
+            if loop.finished:
                 break
     out = {k: v.detach() for k, v in params.items()}
-    return TrainResult(out, it, time.perf_counter() - t0, losses, curve, probe_s)
+    return TrainResult(out, it, clock.seconds(), losses, loop.probes.curve, loop.probes.seconds)
 
 
 def pseudo_loss(

@@ -11,9 +11,10 @@ import math
 import torch
 
 from ...curves import test_probe, write_curve
+from ...gaussians.callbacks import Probe
 from ...gaussians.splats import VIEWER_SH_DEGREE, Splats, export_ply, save_checkpoint, to_world
 from ...gaussians.stopping import Curve, mean_curve, pilot_cap, plateau_iteration, smoothed, still_gaining
-from ...gaussians.trainer import Probe, TrainResult, render_frame, train_gaussians
+from ...gaussians.trainer import TrainResult, render_frame, train_gaussians
 from ...io import atomic_write_json
 from ...io.exr import write_subbands
 from ...io.images import write_png
