@@ -15,7 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tests"))
+# the repository root (tools/) and tests/ (the photo generator), run as a script from anywhere
+sys.path[:0] = [str(Path(__file__).resolve().parents[2]), str(Path(__file__).resolve().parents[2] / "tests")]
 from photo_scene import make_photos  # noqa: E402
 
 from wgs.errors import InputError  # noqa: E402

@@ -24,7 +24,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tests"))
+# the repository root (tools/) and tests/ (the photo generator), run as a script from anywhere
+sys.path[:0] = [str(Path(__file__).resolve().parents[2]), str(Path(__file__).resolve().parents[2] / "tests")]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from photo_scene import make_photos  # noqa: E402
 from xp_sparse_pose import lego_chain  # noqa: E402
