@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -47,6 +48,7 @@ refine_every = 10
 init_points = 800
 hull_resolution = 32
 ensemble = 2
+stop = "iterations"  # all 30 iterations, no pilots; TINY_HELD_OUT keeps the default rule
 [mask_data]
 iterations = 30
 refine_start = 10
@@ -83,6 +85,10 @@ hull_resolution = 32
 # model only adds the start-up of the processes that train the ensemble side by side
 TINY_ONE_MODEL = TINY.replace("ensemble = 2", "ensemble = 1")
 assert TINY_ONE_MODEL != TINY
+# TINY with the coarse stage's default stopping rule (pilots that each hold out a photo): the
+# session's finished workspace and tests/test_stopping.py
+TINY_HELD_OUT = re.sub(r'stop = "iterations".*\n', "", TINY, count=1)
+assert TINY_HELD_OUT != TINY and "stop =" not in TINY_HELD_OUT
 
 from make_scene import make_scene  # noqa: E402
 
@@ -168,7 +174,7 @@ def scene_formats(blender_scene, tmp_path_factory) -> dict[str, Path]:
 
 @pytest.fixture(scope="session")
 def finished_workspace(tmp_path_factory) -> tuple[Path, str]:
-    """One tiny `wgs all` for the whole session: (folder with scene/, wgs.toml (TINY) and ws/, the
+    """One tiny `wgs all` for the whole session: (folder with scene/, wgs.toml (TINY_HELD_OUT) and ws/, the
     command's output). Tests copy ws/ before they change anything in it."""
     from click.testing import CliRunner
 
@@ -176,7 +182,7 @@ def finished_workspace(tmp_path_factory) -> tuple[Path, str]:
 
     base = tmp_path_factory.mktemp("finished")
     scene = make_scene(base / "scene", seed=2, size=64, n_train=4, n_test=5)
-    (base / "wgs.toml").write_text(TINY)
+    (base / "wgs.toml").write_text(TINY_HELD_OUT)
     res = CliRunner().invoke(
         cli,
         ["-q", "--config", str(base / "wgs.toml"), "-w", str(base / "ws"), "all", str(scene)],

@@ -213,6 +213,64 @@ def test_bench_and_stress_tools_stay_apart():
     assert not list(WGS.glob("bench*.py")) and not list(WGS.glob("stress*.py"))
 
 
+def test_the_tools_commands_are_click_as_wgs_is():
+    for main in (TOOLS / "bench.py", TOOLS / "stress.py", TOOLS / "prior" / "__main__.py"):
+        tops = {m.split(".")[0] for m in imported_top_modules(main)}
+        assert "click" in tops and "argparse" not in tops, f"{main.relative_to(WGS.parent)}: {sorted(tops)}"
+
+
+def imported_top_modules(path: Path) -> set[str]:
+    """Absolute module names a file imports anywhere in it."""
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            out.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            out.add(node.module)
+    return out
+
+
+def run_module_public_names() -> dict[str, set[str]]:
+    """{"wgs.stages.<name>.run": the names its `__all__` offers}, for every stage."""
+    out = {}
+    for p in sorted(STAGES.glob("*/run.py")):
+        names = None
+        for node in ast.parse(p.read_text()).body:
+            if isinstance(node, ast.Assign) and any(getattr(t, "id", "") == "__all__" for t in node.targets):
+                names = {ast.literal_eval(e) for e in node.value.elts}  # type: ignore[attr-defined]
+        assert names, f"{p.relative_to(WGS.parent)} declares no __all__ (what tools may use of it)"
+        out[module_name(p)] = names
+    return out
+
+
+def stage_names_used(path: Path, runs: set[str]) -> dict[str, set[str]]:
+    """{stage run module: the names a file takes from it} -- `from M import x` and `import M as m`
+    then `m.x` alike."""
+    used: dict[str, set[str]] = {}
+    aliases: dict[str, str] = {}
+    tree = ast.parse(path.read_text())
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.module in runs:
+            used.setdefault(node.module, set()).update(a.name for a in node.names)
+        elif isinstance(node, ast.Import):
+            aliases.update({a.asname or a.name: a.name for a in node.names if a.name in runs})
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id in aliases:
+            used.setdefault(aliases[node.value.id], set()).add(node.attr)
+    return used
+
+
+def test_tools_reach_a_stage_only_through_its_public_names():
+    # a stage's run module is its own; tools (bench, experiments, the prior's corpus) take from it
+    # only what its __all__ offers, so that a stage can change inside without breaking them
+    public = run_module_public_names()
+    assert len(public) == len(list(STAGES.glob("*/settings.py")))
+    for p in TOOLS.rglob("*.py"):
+        for module, names in stage_names_used(p, set(public)).items():
+            extra = names - public[module]
+            assert not extra, f"{p.relative_to(WGS.parent)} takes {sorted(extra)} from {module}, not in its __all__"
+
+
 def test_no_import_cycle():
     graph, state = import_graph(), {}
 

@@ -7,7 +7,7 @@ import subprocess
 
 import pytest
 import torch
-from conftest import TINY, make_scene
+from conftest import TINY_HELD_OUT, make_scene
 from test_resume import start_and_signal_when, wgs_cmd
 
 from wgs.gaussians.stopping import mean_curve, pilot_cap, plateau_iteration, smoothed, still_gaining
@@ -58,12 +58,12 @@ def tiny(tmp_path_factory):
 
 
 def coarse_cfg(base, name: str, extra: str):
-    cfg = TINY.replace(
+    cfg = TINY_HELD_OUT.replace(
         "[coarse]\niterations = 30\nrefine_start = 10\nrefine_every = 10",
         "[coarse]\niterations = 120\nrefine_start = 20\nrefine_every = 20\nstop_every = 10\nstop_patience = 40\n"
         + extra,
     ).replace("ensemble = 2", "ensemble = 1")
-    assert cfg != TINY
+    assert cfg != TINY_HELD_OUT
     path = base / name
     path.write_text(cfg)
     return path

@@ -8,7 +8,6 @@ median and spread over repeats, plus peak memory (RSS) of the process.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -18,7 +17,9 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
+import click
 import torch
 
 from wgs.gaussians.synthetic import time_backend
@@ -593,41 +594,42 @@ def report(root: str, name: str, res: dict, shown: dict | None = None) -> None:
     print()
 
 
-def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(prog="python -m tools.bench")
-    ap.add_argument(
-        "which", choices=["rasterizer", "iteration", "pipeline", "batch", "contention", "knn", "sfm", "shape", "masks"]
-    )
-    ap.add_argument("--json", action="store_true", help="print JSON instead of a table")
-    ap.add_argument("--repeats", type=int, default=15)
-    ap.add_argument("--ref-repeats", type=int, default=3)
-    ap.add_argument("--scene", default=str(Path(__file__).resolve().parents[2] / "shared" / "data" / "lego"))
-    ap.add_argument("--root", default="bench_out")
-    ap.add_argument("--preset", default=None, help="default for pipeline, fast for batch")
-    ap.add_argument("--views", type=int, default=4)
-    ap.add_argument("--downscale", type=int, default=2)
-    ap.add_argument("--prepared", help="contention: a workspace after `wgs prepare`")
-    ap.add_argument("--stage", default="coarse", choices=["coarse", "fine"], help="iteration: whose training loop")
-    ap.add_argument("--workspace", help="iteration --stage fine: a workspace after `wgs repair`")
-    ap.add_argument(
-        "--start",
-        type=int,
-        default=None,
-        help="iteration: the profiled window's first iteration (default: the middle of the stage)",
-    )
-    ap.add_argument("--iterations", type=int, default=300, help="contention: coarse iterations per run")
-    ap.add_argument("--variants", default=",".join(CONTENTION_VARIANTS), help="contention: thread settings")
-    ap.add_argument("--matcher", default="auto", help="sfm: auto, exhaustive or sequential")
-    ap.add_argument(
-        "--mirror",
-        default=str(Path(__file__).resolve().parents[2] / ".mirror"),
-        help="shape: folder of fetched snapshots (owner+name/repo)",
-    )
-    ap.add_argument("--objects", default=",".join(SHAPE_OBJECTS), help="shape: held-out meshes by corpus name")
-    a = ap.parse_args(argv)
+BENCHMARKS = ("rasterizer", "iteration", "pipeline", "batch", "contention", "knn", "sfm", "shape", "masks")
+SHARED = Path(__file__).resolve().parents[2]  # the checkout's neighbours: benchmark data and fetched snapshots
+
+
+@click.command()
+@click.argument("which", type=click.Choice(BENCHMARKS))
+@click.option("--json", "as_json", is_flag=True, help="rasterizer: print JSON instead of a table")
+@click.option("--repeats", default=15, show_default=True, help="rasterizer: timed repeats of the fast path")
+@click.option("--ref-repeats", default=3, show_default=True, help="rasterizer: timed repeats of the torch reference")
+@click.option("--scene", default=str(SHARED / "shared" / "data" / "lego"), show_default=True, help="scene folder")
+@click.option("--root", default="bench_out", show_default=True, help="folder of the runs and their JSON")
+@click.option("--preset", default=None, help="default for pipeline, fast for batch")
+@click.option("--views", default=4, show_default=True, help="training views")
+@click.option("--downscale", default=2, show_default=True, help="image downscale")
+@click.option("--prepared", default=None, help="contention: a workspace after `wgs prepare`")
+@click.option("--stage", default="coarse", type=click.Choice(["coarse", "fine"]), help="iteration: whose training loop")
+@click.option("--workspace", default=None, help="iteration --stage fine: a workspace after `wgs repair`")
+@click.option(
+    "--start",
+    type=int,
+    default=None,
+    help="iteration: the profiled window's first iteration (default: the middle of the stage)",
+)
+@click.option("--iterations", default=300, show_default=True, help="contention: coarse iterations per run")
+@click.option(
+    "--variants", default=",".join(CONTENTION_VARIANTS), show_default=True, help="contention: thread settings"
+)
+@click.option("--matcher", default="auto", show_default=True, help="sfm: auto, exhaustive or sequential")
+@click.option("--mirror", default=str(SHARED / ".mirror"), help="shape: folder of fetched snapshots (owner+name/repo)")
+@click.option("--objects", default=",".join(SHAPE_OBJECTS), help="shape: held-out meshes by corpus name")
+def main(which: str, as_json: bool, **options) -> None:
+    """Benchmarks (not tests); each writes ROOT/WHICH.json where it says so."""
+    a = SimpleNamespace(which=which, json=as_json, **options)
     if a.which == "iteration":
         if a.stage == "fine" and not (a.workspace and Workspace(Path(a.workspace)).output("repair", "views").is_file()):
-            ap.error("iteration --stage fine needs --workspace WS where `wgs repair` has run")
+            raise click.UsageError("iteration --stage fine needs --workspace WS where `wgs repair` has run")
         if a.stage == "coarse" and not Path(a.scene).is_dir():
             print(f"scene {a.scene} not found: skipped")
             return
@@ -667,7 +669,7 @@ def main(argv: list[str] | None = None) -> None:
         return
     if a.which == "contention":
         if not a.prepared:
-            ap.error("contention needs --prepared WORKSPACE")
+            raise click.UsageError("contention needs --prepared WORKSPACE")
         if not Workspace(a.prepared).stage_dir("prepare").is_dir():
             print(f"no prepared workspace at {a.prepared}: skipped")
             return

@@ -18,7 +18,6 @@ results and a final model identical to the reference's. Writes signal_loop.json.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import shutil
@@ -30,6 +29,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import click
 import torch
 
 from wgs.stages.registry import UNASKED
@@ -284,32 +284,35 @@ def kill_loop(out: Path, fractions: list[float], checkpoint_every: float, hammer
     return summary
 
 
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m tools.stress")
-    sub = parser.add_subparsers(dest="what", required=True)
-    k = sub.add_parser("kill-loop", help="SIGKILL `wgs all` at points spread over every stage, rerun, compare")
-    k.add_argument(
-        "--fractions", default="0.2,0.6,0.95", help="kill points per stage, as fractions of its reference duration"
-    )
-    k.add_argument("--checkpoint-every", type=float, default=0.5)
-    k.add_argument("--hammer-s", type=float, default=6.0, help="kill interval of the last trial")
-    k.add_argument("--out", type=Path, default=None)
-    g = sub.add_parser("signal-loop", help="SIGINT, SIGTERM and SIGUSR1 at random moments, --resume, compare")
-    g.add_argument("--moments", type=int, default=10, help="random moments per signal")
-    g.add_argument("--seed", type=int, default=0)
-    g.add_argument("--checkpoint-every", type=float, default=0.5)
-    g.add_argument("--out", type=Path, default=None)
-    args = parser.parse_args(argv)
+CHECKPOINT_EVERY = click.option(
+    "--checkpoint-every", default=0.5, show_default=True, help="seconds between training snapshots"
+)
+OUT = click.option(
+    "--out", type=click.Path(path_type=Path), default=None, help="keep the runs here (default: a temporary folder)"
+)
+
+
+@click.group()
+def main() -> None:
+    """Interrupt `wgs all` and check that the resumed run ends as the uninterrupted one."""
     os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(".numba_cache").resolve()))
-    if args.what == "signal-loop":
-        with tempfile.TemporaryDirectory() as tmp:
-            summary = signal_loop(args.out or Path(tmp), args.moments, args.seed, args.checkpoint_every)
-        bad = [t for t in summary["trials"] if not t["ok"]]
-        print(f"{len(summary['trials'])} stops, {len(bad)} not as expected")
-        sys.exit(1 if bad else 0)
+
+
+@main.command("kill-loop")
+@click.option(
+    "--fractions",
+    default="0.2,0.6,0.95",
+    show_default=True,
+    help="kill points per stage, as fractions of its reference duration",
+)
+@CHECKPOINT_EVERY
+@click.option("--hammer-s", default=6.0, show_default=True, help="kill interval of the last trial")
+@OUT
+def kill_loop_command(fractions: str, checkpoint_every: float, hammer_s: float, out: Path | None) -> None:
+    """SIGKILL `wgs all` at points spread over every stage, rerun, compare."""
     with tempfile.TemporaryDirectory() as tmp:
-        fractions = [float(x) for x in args.fractions.split(",")]
-        summary = kill_loop(args.out or Path(tmp), fractions, args.checkpoint_every, args.hammer_s)
+        points = [float(x) for x in fractions.split(",")]
+        summary = kill_loop(out or Path(tmp), points, checkpoint_every, hammer_s)
     by_stage: dict[str, int] = {}
     for t in summary["trials"]:
         for s in t["killed_in"]:
@@ -320,6 +323,20 @@ def main(argv: list[str] | None = None) -> None:
     )
     if not summary["all_identical"]:
         sys.exit(1)
+
+
+@main.command("signal-loop")
+@click.option("--moments", default=10, show_default=True, help="random moments per signal")
+@click.option("--seed", default=0, show_default=True, help="seed of the moments")
+@CHECKPOINT_EVERY
+@OUT
+def signal_loop_command(moments: int, seed: int, checkpoint_every: float, out: Path | None) -> None:
+    """SIGINT, SIGTERM and SIGUSR1 at random moments, --resume, compare."""
+    with tempfile.TemporaryDirectory() as tmp:
+        summary = signal_loop(out or Path(tmp), moments, seed, checkpoint_every)
+    bad = [t for t in summary["trials"] if not t["ok"]]
+    print(f"{len(summary['trials'])} stops, {len(bad)} not as expected")
+    sys.exit(1 if bad else 0)
 
 
 if __name__ == "__main__":

@@ -14,7 +14,7 @@ import json
 from pathlib import Path
 
 from wgs.cost import FIT_MASK_SHARE, Calibration, SceneFacts
-from wgs.estimate import stage_seconds
+from wgs.estimate import TRAIN_STAGES, stage_seconds
 from wgs.io.images import find_with_stem, read_image, to_mask
 from wgs.scene.prepare import mask_share
 from wgs.stages.registry import REGISTRY
@@ -65,7 +65,21 @@ def one(ws: Workspace, wall: float | None) -> dict:
     if res.is_file():
         r = json.loads(res.read_text())
         quality = {"gc": r["coarse"]["psnr"], "gf": r["psnr"], "iou": r.get("silhouette_iou")}
+    # the rest after the first training stage, as printed and as it would be rescaled by that
+    # stage's own ratio (tried and not kept: docs/what-we-tried.md, "Speed")
+    first = next((t for t in shown if t in TRAIN_STAGES), None)
+    rest = shown[shown.index(first) + 1 :] if first else []
+    after_first = None
+    if rest:
+        took = sum(actual[t] for t in rest)
+        ratio = actual[first] / printed[first]
+        after_first = {
+            "stage": first,
+            "printed_over_took": sum(printed[t] for t in rest) / took,
+            "rescaled_over_took": ratio * sum(printed[t] for t in rest) / took,
+        }
     return {
+        "after_first": after_first,
         "quality": quality,
         "workspace": ws.root.name,
         "size": f"{sc['width']}x{sc['height']}",
@@ -117,6 +131,10 @@ def main() -> None:
                 f"{r['wall_s'] / r['budget_s']:.2f} | {q.get('gc', 0):.2f} -> {q.get('gf', 0):.2f} | "
                 f"{q.get('iou') or 0:.3f} |"
             )
+    print("\n| workspace | the rest after | printed / took | rescaled / took |\n| --- | --- | ---: | ---: |")
+    for r in rows:
+        if (a := r["after_first"]) is not None:
+            print(f"| {r['workspace']} | {a['stage']} | {a['printed_over_took']:.2f} | {a['rescaled_over_took']:.2f} |")
     print()
     for r in rows:
         stages = r["stages"].items()

@@ -12,7 +12,7 @@ import torch
 from wgs.config import resolve
 from wgs.gaussians.splats import load_checkpoint
 from wgs.scene.dataset import load_prepared
-from wgs.stages.eval.run import evaluate_model
+from wgs.stages.eval.scoring import evaluate_model
 from wgs.stages.registry import run_stage
 from wgs.stages.shared import background_for
 from wgs.stages.stage import StageEnv

@@ -19,10 +19,10 @@ from wgs.models.repair import load_repairer
 from wgs.models.storage import save_model
 from wgs.scene.dataset import load_prepared
 from wgs.scene.orbit import sphere_views
-from wgs.stages.finetune.run import finetune_prior_d
 from wgs.stages.repair.settings import RepairConfig
 from wgs.stages.shared import background_for, coarse_members
 from wgs.threads import map_in_processes
+from wgs.training.per_object import finetune_prior_d
 from wgs.wavelet.haar import dwt2
 from wgs.workspace import Workspace
 

@@ -55,3 +55,7 @@ def train_baseline(run: StageRun, ws: Workspace, cfg: BaselineConfig, env: Stage
         f"baseline: plain 3DGS trained {res.seconds:.0f} s of a {budget:.0f} s budget "
         f"({res.iterations} iterations, {res.splats['means'].shape[0]} Gaussians)"
     )
+
+
+# what tools and other packages may use; the rest is this stage's own
+__all__ = ["run_baseline"]

@@ -226,3 +226,7 @@ def train_coarse(run: StageRun, ws: Workspace, cfg: CoarseConfig, device: torch.
         + (f"; {cfg.ensemble - 1} more ensemble members in {sum(member_s):.1f} s" if member_s else "")
         + (f" ({workers} side by side)" if workers > 1 else "")
     )
+
+
+# what tools and other packages may use; the rest is this stage's own
+__all__ = ["run_coarse"]

@@ -233,4 +233,5 @@ def results_record(
     return res
 
 
+# what tools and other packages may use; the rest is this stage's own
 __all__ = ["run_eval"]

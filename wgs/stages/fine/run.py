@@ -198,3 +198,7 @@ def train_fine(run: StageRun, ws: Workspace, cfg: FineConfig, device: torch.devi
     )
     origin = {"hull": "the visual hull", "carved hull": "the carved visual hull"}.get(start, "G_c")
     return f"fine: {n} Gaussians trained from {origin}, {len(frames)} pseudo views, {res.seconds:.1f} s"
+
+
+# what tools and other packages may use; the rest is this stage's own
+__all__ = ["run_fine", "fine_inputs", "FineInputs"]

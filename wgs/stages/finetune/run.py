@@ -194,3 +194,7 @@ def finish_with_u(
     if "D" in curves:
         plot_curves(run.path("curves.png"), curves)
     return record
+
+
+# what tools and other packages may use; the rest is this stage's own
+__all__ = ["run_finetune"]

@@ -169,3 +169,7 @@ def make_pairs(run: StageRun, ws: Workspace, cfg: MaskDataConfig, device: torch.
         {"strategy": cfg.strategy, "num_pairs": len(writer.pairs), "strategy_seconds": round(seconds, 2), **stats}
     )
     return f"mask-data: {cfg.strategy}, {len(writer.pairs)} pairs from {stats['models']} model(s) in {seconds:.1f} s"
+
+
+# what tools and other packages may use; the rest is this stage's own
+__all__ = ["run_mask_data"]

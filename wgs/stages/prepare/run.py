@@ -381,3 +381,7 @@ def import_scene(
         "mirror": info.get("mirror"),
     }
     return f"prepare: wrote {ws.stage_dir('prepare')}"
+
+
+# what tools and other packages may use; the rest is this stage's own
+__all__ = ["run_prepare"]

@@ -225,3 +225,7 @@ def repair_views(run: StageRun, ws: Workspace, cfg: RepairConfig, device: torch.
         }
     )
     return f"repair: {len(listing)} pseudo references in {seconds:.1f} s"
+
+
+# what tools and other packages may use; the rest is this stage's own
+__all__ = ["run_repair", "shape_models", "ShapeModels"]
