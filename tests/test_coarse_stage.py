@@ -82,3 +82,26 @@ def test_config_file_sets_stage_options(blender_scene, tmp_path):
     assert m["iterations"] == 20 and m["config"]["sh_degree"] == 0 and m["seed"] == 3
     invoke("--config", str(cfg), "-w", str(ws.root), "coarse", "--iterations", "25")  # CLI beats the file
     assert ws.manifest("coarse")["iterations"] == 25
+
+
+def test_the_tests_config_files_are_valid_toml(tmp_path, monkeypatch):
+    """The configs the suite builds from TINY, the cluster tests' too (which `make test` does not
+    collect), parse as wgs config files: a key set twice fails here first."""
+    import importlib.util
+    from pathlib import Path
+
+    import conftest
+    import test_resume
+
+    from wgs.config import load_config_file
+
+    folder = Path(__file__).parent / "cluster"
+    monkeypatch.syspath_prepend(str(folder))  # its local_slurm
+    spec = importlib.util.spec_from_file_location("cluster_batch", folder / "test_slurm_batch.py")
+    assert spec is not None and spec.loader is not None
+    cluster = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(cluster)
+    texts = [conftest.TINY, conftest.TINY_ONE_MODEL, conftest.TINY_HELD_OUT, test_resume.CFG, cluster.LONG_COARSE]
+    for i, text in enumerate(texts):
+        (tmp_path / f"c{i}.toml").write_text(text)
+        assert load_config_file(tmp_path / f"c{i}.toml")["coarse"]

@@ -21,14 +21,13 @@ from local_slurm import LocalSlurm
 from wgs.workspace import Workspace
 
 # the time-limit scene: a coarse stage of about 100 s on one core, so that the signal finds it
-# training (all its iterations: the held-out stopping rule would end it long before)
+# training (all its iterations, as TINY's: the held-out stopping rule would end it long before)
 LONG_COARSE = TINY_ONE_MODEL.replace(
     "iterations = 30\nrefine_start = 10\nrefine_every = 10\ninit_points = 800\nhull_resolution = 32\nensemble = 1",
-    "iterations = 5000\nrefine_start = 10\nrefine_every = 100\ninit_points = 800\nhull_resolution = 32\nensemble = 1"
-    '\nstop = "iterations"',
+    "iterations = 5000\nrefine_start = 10\nrefine_every = 100\ninit_points = 800\nhull_resolution = 32\nensemble = 1",
     1,
 )
-assert LONG_COARSE != TINY_ONE_MODEL
+assert LONG_COARSE != TINY_ONE_MODEL and 'stop = "iterations"' in LONG_COARSE
 
 
 @pytest.fixture(scope="module")
