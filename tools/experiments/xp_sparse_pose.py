@@ -4,6 +4,7 @@ at azimuth steps, and NeRF-Synthetic lego (400x400, measuring only) along chains
 given angle apart.
 
     python tools/experiments/xp_sparse_pose.py [--lego ../shared/data/lego] [--steps 30 45 60 75]
+        [--shapes 1 2]   (more generated objects: make_photos's shape_seed)
 """
 
 import argparse
@@ -69,7 +70,7 @@ def run(scene: str, truth: dict[str, np.ndarray], folder: Path) -> dict:
             "spacing": spacing(truth),
             "posed": 0,
             "seconds": time.perf_counter() - t0,
-            "note": str(exc)[:120],
+            "note": str(exc),
         }
     posed = {v.name: v.w2c for v in read_colmap_scene(folder, folder / "model", image_dir, fmt="photos").views}
     keys = sorted(posed)
@@ -88,6 +89,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--lego", type=Path, default=Path("../shared/data/lego"))
     ap.add_argument("--steps", type=float, nargs="+", default=[30, 45, 60, 75])
+    ap.add_argument("--shapes", type=int, nargs="*", default=[])
     args = ap.parse_args()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -95,6 +97,11 @@ def main() -> None:
             folder = Path(tmp) / f"generated_{step:g}"
             cams = make_photos(folder, n=4, azimuths=[step * i for i in range(4)])
             rows.append(run(f"generated, {step:g} deg steps", {k: v[1] for k, v in cams.items()}, folder))
+            for shape in args.shapes:
+                folder = Path(tmp) / f"generated_{shape}_{step:g}"
+                cams = make_photos(folder, n=4, azimuths=[step * i for i in range(4)], shape_seed=shape)
+                name = f"generated (shape {shape}), {step:g} deg steps"
+                rows.append(run(name, {k: v[1] for k, v in cams.items()}, folder))
             if (args.lego / "transforms_train.json").is_file():
                 folder = Path(tmp) / f"lego_{step:g}"
                 rows.append(run(f"lego, {step:g} deg chain", lego_chain(args.lego, step, folder), folder))

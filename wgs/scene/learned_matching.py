@@ -87,10 +87,11 @@ def extract(image: np.ndarray, mask: np.ndarray | None = None, side: int = MATCH
 
 
 @torch.inference_mode()
-def match(a: Features, b: Features) -> np.ndarray:
-    """LightGlue's matches between two photos' features: [M, 2] keypoint indices (uint32)."""
+def match(a: Features, b: Features) -> tuple[np.ndarray, np.ndarray]:
+    """LightGlue's matches between two photos' features: [M, 2] keypoint indices (uint32) and
+    each match's confidence [M] (0..1)."""
     if len(a.keypoints) < 8 or len(b.keypoints) < 8:
-        return np.zeros((0, 2), np.uint32)
+        return np.zeros((0, 2), np.uint32), np.zeros(0, np.float32)
     _, matcher = _models()
 
     def side(f: Features) -> dict[str, torch.Tensor]:
@@ -98,7 +99,7 @@ def match(a: Features, b: Features) -> np.ndarray:
         return {"keypoints": kp, "descriptors": f.descriptors[None], "image_size": torch.tensor([f.size]).float()}
 
     out = matcher({"image0": side(a), "image1": side(b)})
-    return out["matches"][0].numpy().astype(np.uint32)
+    return out["matches"][0].numpy().astype(np.uint32), out["scores"][0].numpy().astype(np.float32)
 
 
 __all__ = ["LICENCE", "WEIGHTS_PACKAGE", "Features", "extract", "match", "weights_dir"]

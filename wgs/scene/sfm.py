@@ -39,7 +39,12 @@ MIN_PAIR_INLIERS = 15  # learned matching: verified matches that join two photos
 # (generated object: a photo 140 degrees from the others, placed 167 degrees off, had 0.11; a
 # right one 45 degrees from its neighbour 0.18)
 WEAK_IMAGE_SHARE = 0.15
-WEAK_PAIR_SHARE = 0.25  # learned matching: a pair with fewer than this share of its photos' strongest pairs is dropped
+# learned matching: a pair needs this many matches that LightGlue is confident of (score above
+# CONFIDENT_SCORE). Wrong matches on like-looking parts of photos 60-180 degrees apart can pass
+# two-view verification (40-170 of them); LightGlue is sure of at most 17 in 47 of 54 such pairs,
+# while pairs whose geometry is right have 43-700 (tools/experiments/xp_pair_confidence.py)
+MIN_CONFIDENT = 20
+CONFIDENT_SCORE = 0.5
 MIN_REGISTERED = 3
 # the seed of COLMAP's RANSAC in two-view verification and in the mapper; left random, the same 4
 # lego photos posed 1.93 or 1.94 degrees off from one run to the next, and once 5.12
@@ -78,7 +83,7 @@ def find_photos(root: Path) -> tuple[Path, list[str], Path | None] | None:
 
 def _colmap_masks(image_dir: Path, names: list[str], mask_dir: Path, out: Path) -> None:
     """COLMAP reads the mask of `a.jpg` from `a.jpg.png` (0 = no features there): write ours so."""
-    for name, grown in _grown_masks(image_dir, names, mask_dir).items():
+    for name, grown in grown_masks(image_dir, names, mask_dir).items():
         write_png(out / f"{name}.png", grown.astype(np.float32))
 
 
@@ -305,7 +310,7 @@ def _learned_database(
 
     pycolmap.Database.open(db).close()  # created empty: import_images fills it
     pycolmap.import_images(db, image_dir, camera_mode, image_names=names, options=reader)
-    masks = _grown_masks(image_dir, names, mask_dir) if mask_dir is not None else {}
+    masks = grown_masks(image_dir, names, mask_dir) if mask_dir is not None else {}
     features = []
     with progress_bar("sfm: learned features", len(names)) as prog:
         for name in names:
@@ -317,9 +322,12 @@ def _learned_database(
         for name, f in zip(names, features, strict=True):
             database.write_keypoints(ids[name], f.keypoints)
         pairs = list(itertools.combinations(range(len(names)), 2))
+        confident = {}
         with progress_bar("sfm: learned matching", len(pairs)) as prog:
             for i, j in pairs:
-                database.write_matches(ids[names[i]], ids[names[j]], lm.match(features[i], features[j]))
+                matches, scores = lm.match(features[i], features[j])
+                database.write_matches(ids[names[i]], ids[names[j]], matches)
+                confident[(names[i], names[j])] = int((scores > CONFIDENT_SCORE).sum())
                 prog.advance(BAR)
     finally:
         database.close()
@@ -332,13 +340,11 @@ def _learned_database(
         for i, j in pairs:
             geometry = database.read_two_view_geometry(ids[names[i]], ids[names[j]])
             verified[(names[i], names[j])] = len(geometry.inlier_matches)
-        # a pair far weaker than both photos' strongest is most likely wrong matches on like-looking
-        # parts (a far side), which verification can still fit: it is dropped
-        strongest = {name: max((m for pair, m in verified.items() if name in pair), default=0) for name in names}
-        for (a, b), m in verified.items():
-            if 0 < m < WEAK_PAIR_SHARE * min(strongest[a], strongest[b]):
-                database.delete_two_view_geometry(ids[a], ids[b])
-                verified[(a, b)] = 0
+        # a pair LightGlue is sure of few matches of is wrong matches that verification could fit
+        for pair, m in verified.items():
+            if 0 < m and confident[pair] < MIN_CONFIDENT:
+                database.delete_two_view_geometry(ids[pair[0]], ids[pair[1]])
+                verified[pair] = 0
     finally:
         database.close()
     return verified
@@ -357,6 +363,8 @@ def _incremental_mapping(db: Path, image_dir: Path, tmp: Path, n: int, threads: 
         mapping.mapper.abs_pose_min_num_inliers = MIN_PAIR_INLIERS
         mapping.mapper.abs_pose_min_inlier_ratio = 0.1
         mapping.init_num_trials = 400
+        # COLMAP keeps a model of at least 0.8 of the photos: 3 of 4 would be thrown away
+        mapping.min_model_size = MIN_REGISTERED
     if focal is not None:
         mapping.ba_refine_focal_length = False
     registered = [0]
@@ -403,13 +411,17 @@ def _check_sparse(best, names: list[str], verified: dict[tuple[str, str], int], 
                 + f"; one more photo between {across[1]} and {across[2]} would join them"
             )
         else:
+            # one group, yet no 3 posed: its pairs share points that no third photo sees
+            links = [kv for kv in share if kv[1] >= 2 * MIN_PAIR_INLIERS] or share[:1]
+            (a, b), _ = links[-1]
             where = (
-                f"one more photo between {share[0][0][0]} and {share[0][0][1]} would give the mapper more to start from"
+                f"one more photo between {a} and {b}, the weakest link, would give the mapper points "
+                "that three photos see"
             )
         raise InputError(
-            f"no {MIN_REGISTERED} of the {len(names)} photos pose together: they share too little (verified matches "
-            f"per pair: {shown}; a pair needs about {2 * MIN_PAIR_INLIERS}); {where} (neighbours up to about 45 "
-            "degrees apart pose)",
+            f"no {MIN_REGISTERED} of the {len(names)} photos pose together: they share too little (verified, "
+            f"confident matches per pair: {shown}; a pair needs about {2 * MIN_PAIR_INLIERS}); {where} "
+            "(neighbours up to about 45 degrees apart pose)",
             image_dir,
         )
     for name in left:
@@ -435,7 +447,7 @@ def _groups(names: list[str], verified: dict[tuple[str, str], int]) -> list[list
     return sorted(unique.values(), key=lambda g: (-len(g), g))
 
 
-def _grown_masks(image_dir: Path, names: list[str], mask_dir: Path) -> dict[str, np.ndarray]:
+def grown_masks(image_dir: Path, names: list[str], mask_dir: Path) -> dict[str, np.ndarray]:
     """Each photo's mask [H, W] (bool), grown by a margin: corners on the outline are good features."""
     out = {}
     for name in names:
@@ -458,4 +470,4 @@ def _rgb(image: np.ndarray) -> np.ndarray:
     return np.repeat(image, 3, axis=2) if image.shape[2] == 1 else image[..., :3]
 
 
-__all__ = ["MATCHERS", "SfmResult", "find_photos", "pose_photos", "HOW_TO_POSE"]
+__all__ = ["MATCHERS", "SfmResult", "find_photos", "grown_masks", "pose_photos", "HOW_TO_POSE"]
