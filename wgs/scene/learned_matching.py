@@ -11,8 +11,9 @@ from __future__ import annotations
 
 import importlib.util
 from dataclasses import dataclass
-from functools import cache
+from functools import cache, partial
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -63,7 +64,30 @@ def _models() -> tuple[torch.nn.Module, torch.nn.Module]:
     extractor.load_state_dict(torch.load(folder / EXTRACTOR, map_location="cpu", weights_only=True), strict=False)
     matcher = kf.LightGlue(None, input_dim=128, n_layers=LIGHTGLUE_LAYERS)  # type: ignore[arg-type]  # None: no download
     matcher.load_state_dict(torch.load(folder / MATCHER, map_location="cpu", weights_only=True), strict=False)
+    for layer in matcher.transformers:
+        cross: Any = layer.cross_attn  # kornia's CrossBlock
+        cross.forward = partial(fused_cross_attention, cross)
     return extractor.eval(), matcher.eval()
+
+
+def fused_cross_attention(
+    block: Any, x0: torch.Tensor, x1: torch.Tensor, mask: torch.Tensor | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """kornia's `CrossBlock.forward` (LightGlue's cross-attention: each photo's keypoints attend to
+    the other's) with both directions by `scaled_dot_product_attention`. kornia fuses them on CUDA
+    only; on the CPU it holds the [B, heads, M, N] similarities and two softmaxes of them, about half
+    of the matching time. x0 [B, M, D], x1 [B, N, D] -> the same shapes. kornia's own forward is the
+    reference (tests/test_learned_matching.py) and runs where a mask is given."""
+    if mask is not None:
+        return type(block).forward(block, x0, x1, mask)
+    qk0, qk1, v0, v1 = (
+        t.unflatten(-1, (block.heads, -1)).transpose(1, 2)
+        for t in (block.to_qk(x0), block.to_qk(x1), block.to_v(x0), block.to_v(x1))
+    )
+    m0 = F.scaled_dot_product_attention(qk0, qk1, v1, scale=block.scale)
+    m1 = F.scaled_dot_product_attention(qk1, qk0, v0, scale=block.scale)
+    m0, m1 = (block.to_out(m.transpose(1, 2).flatten(start_dim=-2)) for m in (m0, m1))
+    return x0 + block.ffn(torch.cat([x0, m0], -1)), x1 + block.ffn(torch.cat([x1, m1], -1))
 
 
 @torch.inference_mode()
@@ -102,4 +126,4 @@ def match(a: Features, b: Features) -> tuple[np.ndarray, np.ndarray]:
     return out["matches"][0].numpy().astype(np.uint32), out["scores"][0].numpy().astype(np.float32)
 
 
-__all__ = ["LICENCE", "WEIGHTS_PACKAGE", "Features", "extract", "match", "weights_dir"]
+__all__ = ["LICENCE", "WEIGHTS_PACKAGE", "Features", "extract", "fused_cross_attention", "match", "weights_dir"]
