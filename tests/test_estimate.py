@@ -36,6 +36,7 @@ from wgs.estimate import (
 )
 from wgs.scene.prepare import downscale_for
 from wgs.stages.coarse.settings import pilots_s
+from wgs.stages.fine.settings import expected_end
 
 # about this 2-core CPU's figures (a calibration made here)
 CAL = Calibration(
@@ -79,7 +80,8 @@ def test_stage_seconds_grow_with_size_and_iterations():
     for t in ("coarse", "mask_data", "fine", "repair", "eval"):
         assert large[t] > small[t]
     assert longer["coarse"] > 1.8 * (every["coarse"] - 25 * CAL.d_step_s)
-    assert longer["fine"] == small["fine"]
+    assert longer["fine"] == every["fine"]  # the coarse stage's iterations are not G_f's
+    assert small["fine"] < every["fine"]  # under the held-out rule G_f stops where the coarse models do
     fast = stage_seconds(CAL, configs("fast"), SceneFacts(128, 128, 4, 8))
     assert sum(fast.values()) < sum(small.values()) / 3
 
@@ -95,6 +97,11 @@ def test_the_held_out_rule_is_modelled_as_its_margin_times_the_expected_plateau_
     # twice the iterations: the stop (3 x 400) is below both, and more of it in the schedule's half-size share
     longer = stage_seconds(CAL, configs(coarse={"iterations": 3000}), facts)
     assert 0.5 < longer["coarse"] / stage_seconds(CAL, configs(), facts)["coarse"] < 1
+    # G_f stops at the coarse stage's margin times the expected plateau, of its own iterations
+    fine = configs()["fine"]
+    assert expected_end(fine, cfg) == min(fine.iterations, round(cfg.stop_margin * EXPECTED_PLATEAU))
+    assert expected_end(dataclasses.replace(fine, stop="iterations"), cfg) is None
+    assert expected_end(fine, dataclasses.replace(cfg, stop="iterations")) is None
 
 
 def test_the_training_stages_grow_with_the_share_of_the_frame_the_object_covers():

@@ -15,7 +15,8 @@ from conftest import run_cli
 
 from wgs.workspace import Workspace
 
-FAST = "[coarse]\niterations = 200\ninit_points = 800\nhull_resolution = 32\n"
+# a short coarse stage that still runs the pilots and more than one model: a fault may hit any of them
+FAST = "[coarse]\niterations = 60\ninit_points = 800\nhull_resolution = 32\nensemble = 2\n"
 
 
 @pytest.fixture(scope="module")
@@ -138,7 +139,7 @@ def test_read_only_workspace(prepared, tmp_path):
 
 def test_second_writer_is_refused_naming_the_holder(prepared, tmp_path):
     cfg = tmp_path / "wgs.toml"
-    cfg.write_text(FAST.replace("200", "3000"))
+    cfg.write_text(FAST.replace("iterations = 60", "iterations = 3000"))
     first = subprocess.Popen(
         [sys.executable, "-m", "wgs", "-q", "--config", str(cfg), "-w", str(prepared), "coarse"],
         stdout=subprocess.DEVNULL,

@@ -68,7 +68,7 @@ def test_three_that_pose_are_kept_and_the_fourth_is_named(tmp_path):
     from conftest import run_cli
 
     make_photos(tmp_path / "p", n=4, azimuths=[0, 30, 60, 200])
-    (tmp_path / "short.toml").write_text('[prepare]\ncamera_iterations = 100\nmirror = "none"\n')
+    (tmp_path / "short.toml").write_text('[prepare]\ncamera_iterations = 40\nmirror = "none"\n')
     proc = run_cli(["--config", tmp_path / "short.toml", "-w", tmp_path / "ws", "prepare", tmp_path / "p"], tmp_path)
     assert proc.returncode == 0, proc.stderr
     err = " ".join(proc.stderr.split())

@@ -1,4 +1,4 @@
-"""The held-out stopping rule: where a curve stops gaining (`gaussians.stopping`), and the coarse
+"""The held-out stopping rule: where a curve stops gaining (`gaussians.stopping`), and the coarse and fine
 stage stopping there, saying why, and keeping that stop across a resume."""
 
 import json
@@ -8,7 +8,7 @@ import subprocess
 import pytest
 import torch
 from conftest import TINY_HELD_OUT, make_scene
-from test_resume import start_and_signal_when, wgs_cmd
+from test_resume import assert_same_model, copy_workspace, start_and_signal_when, wgs_cmd
 
 from wgs.gaussians.stopping import mean_curve, pilot_cap, plateau_iteration, smoothed, still_gaining
 
@@ -53,8 +53,16 @@ def test_a_pilot_runs_no_further_than_its_curve_can_shorten_the_run():
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
+    """The tiny scene and a workspace where `wgs prepare` ran on it once (every config below has
+    TINY's prepare settings): each test starts from a copy at the coarse stage."""
     base = tmp_path_factory.mktemp("stopping")
-    return make_scene(base / "scene", seed=2, size=64, n_train=4, n_test=5), base
+    scene = make_scene(base / "scene", seed=2, size=64, n_train=4, n_test=5)
+    subprocess.run(
+        wgs_cmd(base / "prepared", coarse_cfg(base, "prepare.toml", ""), "prepare", str(scene)),
+        check=True,
+        capture_output=True,
+    )
+    return scene, base
 
 
 def coarse_cfg(base, name: str, extra: str):
@@ -70,28 +78,51 @@ def coarse_cfg(base, name: str, extra: str):
 
 
 def prepared_and_coarse(ws, cfg, scene) -> tuple[str, dict, list[str]]:
-    """`wgs prepare` and `wgs coarse`: what coarse said (one line), its manifest, the photos' names."""
-    subprocess.run(wgs_cmd(ws, cfg, "prepare", str(scene)), check=True, capture_output=True)
+    """`wgs coarse` after the shared prepare: what coarse said (one line), its manifest, the photos' names."""
+    copy_workspace(scene.parent / "prepared", ws)
     proc = subprocess.run(wgs_cmd(ws, cfg, "coarse", quiet=False), capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
     photos = json.loads((ws / "scene/scene.json").read_text())["train_names"]
     return " ".join(proc.stderr.split()), json.loads((ws / "1_coarse/manifest.json").read_text()), photos
 
 
-def test_coarse_stops_where_the_pilots_stopped_gaining_says_why_and_resumes_to_the_same_model(tiny, tmp_path):
+@pytest.mark.slow
+def test_coarse_and_fine_stop_where_the_pilots_stopped_gaining_say_why_and_resume_to_the_same_models(tiny, tmp_path):
+    """A tolerance no score misses: the pilots' plateau is iteration 0, so the coarse models stop at
+    stop_min_iterations (50 of 120), and G_f, which follows them (the coarse stage's margin times
+    their plateau, of its own iterations), at 50 of its 120. Each stage killed in its loop resumes
+    to the uninterrupted run's model; `--stop iterations` trains all of G_f's iterations."""
     scene, base = tiny
-    # a tolerance no score misses: the pilots' plateau is iteration 0, so the models stop at stop_min_iterations
     cfg = coarse_cfg(base, "stop.toml", "stop_tolerance_db = 100.0\nstop_min_iterations = 50\n")
-    ref = tmp_path / "ref"
-    said, m, photos = prepared_and_coarse(ref, cfg, scene)
+    cfg.write_text(
+        cfg.read_text().replace(
+            "[fine]\niterations = 20\nrefine_start = 5\nrefine_every = 5",
+            "[fine]\niterations = 120\nrefine_start = 20\nrefine_every = 20",
+        )
+    )
+    assert "[fine]\niterations = 120" in cfg.read_text()
+    ref = copy_workspace(base / "prepared", tmp_path / "ref")
+    proc = subprocess.run(wgs_cmd(ref, cfg, "all", str(scene), quiet=False), capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    said = " ".join(proc.stderr.split())
     assert "coarse: stops at iteration 50 of 120, 3 x 0, where the held-out PSNR of 4 pilots" in said, said
+    m = json.loads((ref / "1_coarse/manifest.json").read_text())
     assert m["iterations"] == 50 and m["stopping"]["stop_at"] == 50
-    assert list(m["stopping"]["pilot_iterations"]) == photos
+    assert list(m["stopping"]["pilot_iterations"]) == json.loads((ref / "scene/scene.json").read_text())["train_names"]
     assert all(40 <= n <= 120 for n in m["stopping"]["pilot_iterations"].values())  # each ran out its patience
+    assert "fine: stops at iteration 50 of 120, 3 x 0, where the coarse stage's pilots" in said, said
+    m = json.loads((ref / "5_fine/manifest.json").read_text())
+    assert m["iterations"] == 50 and m["stopping"] == {
+        "rule": "coarse pilots",
+        "plateau": 0,
+        "margin": 3.0,
+        "stop_at": 50,
+    }
+    report = " ".join((ref / "6_eval/report.md").read_text().split())
+    assert "fine stopped at iteration 50: 3 times the plateau of the coarse stage's pilots (iteration 0)" in report
 
     # killed in G_c's loop, after the pilots saved where to stop: the resumed run stops there too
-    ws = tmp_path / "ws"
-    subprocess.run(wgs_cmd(ws, cfg, "prepare", str(scene)), check=True, capture_output=True)
+    ws = copy_workspace(base / "prepared", tmp_path / "ws")
     killed = start_and_signal_when(wgs_cmd(ws, cfg, "coarse"), ws / ".resume/1_coarse/gc.pt", signal.SIGKILL)
     killed.communicate(timeout=120)
     assert (ws / ".resume/1_coarse/stop.pt").is_file()
@@ -99,9 +130,22 @@ def test_coarse_stops_where_the_pilots_stopped_gaining_says_why_and_resumes_to_t
     assert res.returncode == 0, res.stderr
     assert "the pilots ran before the interruption: their stop is kept" in " ".join(res.stderr.split())
     assert "stops at iteration 50 of 120" in " ".join(res.stderr.split())
-    a = torch.load(ws / "1_coarse/ckpt.pt", weights_only=True)["splats"]
-    b = torch.load(ref / "1_coarse/ckpt.pt", weights_only=True)["splats"]
-    assert all(torch.equal(a[k], b[k]) for k in b)
+    assert_same_model(ws, ref, "1_coarse")
+
+    # killed in G_f's loop: the resumed stage stops at the same iteration with the same model
+    ws = copy_workspace(ref, tmp_path / "ws_fine", ("scene", "1_coarse", "2_mask_data", "3_finetune", "4_repair"))
+    killed = start_and_signal_when(wgs_cmd(ws, cfg, "fine"), ws / ".resume/5_fine/gf.pt", signal.SIGKILL)
+    killed.communicate(timeout=120)
+    assert 0 < torch.load(ws / ".resume/5_fine/gf.pt", weights_only=True)["it"] < 50
+    res = subprocess.run(wgs_cmd(ws, cfg, "fine", resume=True, quiet=False), capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    assert "stops at iteration 50 of 120" in " ".join(res.stderr.split())
+    assert_same_model(ws, ref, "5_fine")
+
+    res = subprocess.run(wgs_cmd(ws, cfg, "fine", "--stop", "iterations", "--iterations", "60"), capture_output=True)
+    assert res.returncode == 0, res.stderr
+    m = json.loads((ws / "5_fine/manifest.json").read_text())
+    assert m["iterations"] == 60 and m["stopping"] is None
 
 
 def test_stop_iterations_trains_every_iteration_and_runs_no_pilot(tiny, tmp_path):

@@ -12,7 +12,7 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
-from .gaussians.stopping import StopParams
+from .gaussians.stopping import StopParams, stop_iteration
 from .gaussians.trainer import TrainConfig
 
 # the working size chosen for the machine where neither downscale nor max_size is set (wgs.estimate)
@@ -108,11 +108,14 @@ def time_boxed(cfg: Any, seconds: float, planned_seconds: float, headroom: float
 
 
 def expected_iterations(cfg: TrainConfig) -> int:
-    """The iterations a loop is expected to run: all of them, or under the held-out stopping rule
-    (`gaussians.stopping`) its margin times the expected plateau."""
+    """The iterations a loop is expected to run: up to its `end_iteration` where that is set, all
+    of them, or under the held-out stopping rule (`gaussians.stopping`) its margin times the
+    expected plateau."""
+    if cfg.end_iteration:
+        return min(cfg.end_iteration, cfg.iterations)
     if not isinstance(cfg, StopParams) or cfg.stop != "held-out" or cfg.max_seconds:
         return cfg.iterations
-    return min(cfg.iterations, max(round(cfg.stop_margin * EXPECTED_PLATEAU), cfg.stop_min_iterations))
+    return stop_iteration(EXPECTED_PLATEAU, cfg.stop_margin, cfg.stop_min_iterations, cfg.iterations)
 
 
 def cover_factor(facts: SceneFacts) -> float:

@@ -16,19 +16,27 @@ from dataclasses import dataclass
 from ..fields import option
 
 Curve = list[tuple[int, float]]  # (iteration, held-out score in dB), iterations increasing
+STOP_RULES = ("held-out", "iterations")  # the training stages' `stop` choices
 
 
 @dataclass
-class StopParams:
-    """The held-out stopping rule's settings: the one place their defaults live (the training
-    stages' configs inherit these fields)."""
+class StopRule:
+    """Whether a training stage stops where the held-out rule says: the one place its default
+    lives (the coarse stage runs the pilots, the fine stage follows them)."""
 
     stop: str = option(
         "held-out",
-        "held-out: pilots that each hold one photo out (half size) choose where the models stop gaining; "
-        "iterations: train all the iterations.",
-        choices=("held-out", "iterations"),
+        "held-out: pilots that each hold one photo out (half size, in the coarse stage) choose where the models "
+        "stop gaining; iterations: train all the iterations.",
+        choices=STOP_RULES,
     )
+
+
+@dataclass
+class StopParams(StopRule):
+    """The held-out stopping rule's settings: the one place their defaults live (the training
+    stages' configs inherit these fields)."""
+
     stop_every: int = 25  # a pilot scores its held-out photo every so many iterations
     stop_tolerance_db: float = 0.1  # a score within this of the best counts as the best
     stop_patience: int = 250  # a pilot ends after this many iterations without a better score (or at `pilot_cap`)
@@ -45,6 +53,12 @@ def pilot_cap(iterations: int, margin: float, patience: int) -> int:
     at all its `iterations`, and seeing a plateau there takes `patience` more iterations. Past
     this point a pilot's curve cannot shorten the run."""
     return min(iterations, math.ceil(iterations / margin) + patience)
+
+
+def stop_iteration(plateau: int, margin: float, min_iterations: int, iterations: int) -> int:
+    """Where a run of `iterations` stops under the held-out rule: `margin` times the pilots'
+    `plateau`, at least `min_iterations`."""
+    return min(max(round(margin * plateau), min_iterations), iterations)
 
 
 def plateau_iteration(curve: Curve, tolerance_db: float) -> int:
@@ -81,4 +95,15 @@ def mean_curve(curves: list[Curve]) -> Curve:
     return [(it, statistics.fmean(at(c, it) for c in curves)) for it in its]
 
 
-__all__ = ["Curve", "StopParams", "mean_curve", "pilot_cap", "plateau_iteration", "smoothed", "still_gaining"]
+__all__ = [
+    "STOP_RULES",
+    "Curve",
+    "StopParams",
+    "StopRule",
+    "mean_curve",
+    "pilot_cap",
+    "plateau_iteration",
+    "smoothed",
+    "still_gaining",
+    "stop_iteration",
+]

@@ -13,7 +13,15 @@ import torch
 from ...curves import test_probe, write_curve
 from ...gaussians.callbacks import Probe
 from ...gaussians.splats import VIEWER_SH_DEGREE, Splats, export_ply, save_checkpoint, to_world
-from ...gaussians.stopping import Curve, mean_curve, pilot_cap, plateau_iteration, smoothed, still_gaining
+from ...gaussians.stopping import (
+    Curve,
+    mean_curve,
+    pilot_cap,
+    plateau_iteration,
+    smoothed,
+    still_gaining,
+    stop_iteration,
+)
 from ...gaussians.trainer import TrainResult, render_frame, train_gaussians
 from ...io import atomic_write_json
 from ...io.exr import write_subbands
@@ -144,7 +152,7 @@ def held_out_stop(
     record = {
         "rule": "held-out",
         "plateau": plateau,
-        "stop_at": min(max(round(cfg.stop_margin * plateau), cfg.stop_min_iterations), cfg.iterations),
+        "stop_at": stop_iteration(plateau, cfg.stop_margin, cfg.stop_min_iterations, cfg.iterations),
         "held_out_psnr": dict(mean)[plateau],
         "best_psnr": max(s for _, s in mean),
         "pilot_iterations": {p: curves[p][-1][0] for p in photos},

@@ -57,13 +57,19 @@ def write_report(
         "",
     ]
     for r in times:
-        if r.get("stopping"):
-            st = r["stopping"]
+        st = r.get("stopping")
+        if st and "pilot_iterations" in st:
             lines += [
                 f"{r['stage']} stopped at iteration {st['stop_at']}: the held-out PSNR of "
                 f"{len(st['pilot_iterations'])} pilots (each photo held out in turn, half size) reached its plateau "
                 f"at iteration {st['plateau']} ({st['held_out_psnr']:.2f} dB, best {st['best_psnr']:.2f} dB), and "
                 "the models train a margin times that.",
+                "",
+            ]
+        elif st:
+            lines += [
+                f"{r['stage']} stopped at iteration {st['stop_at']}: {st['margin']:g} times the plateau of the "
+                f"coarse stage's pilots (iteration {st['plateau']}).",
                 "",
             ]
     if shape is not None:

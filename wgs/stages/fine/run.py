@@ -10,6 +10,7 @@ import torch
 from ...curves import test_probe, write_curve
 from ...errors import InputError
 from ...gaussians.splats import VIEWER_SH_DEGREE, Splats, export_ply, load_checkpoint, save_checkpoint, to_world
+from ...gaussians.stopping import stop_iteration
 from ...gaussians.trainer import PseudoViews, train_gaussians
 from ...io import read_json
 from ...io.exr import read_subbands
@@ -150,7 +151,32 @@ def fine_inputs(ws: Workspace, cfg: FineConfig, device: torch.device, seed: int)
     return FineInputs(scene, splats, start, frames, weights, background_for(scene), lpips_fn, lpips_term)
 
 
+def held_out_stop(ws: Workspace, cfg: FineConfig) -> dict | None:
+    """Where G_f stops under the held-out rule: the coarse stage's margin times its pilots' plateau
+    (each photo held out in turn, `gaussians.stopping`), of G_f's own iterations. The fine stage
+    has no pilots of its own: a photo held out of it is learnt back from the pseudo references,
+    which G_c made having seen it (docs/what-we-tried.md). None where either stage's rule is off."""
+    coarse = ws.manifest("coarse")
+    found = coarse.get("stopping") if coarse is not None else None
+    if cfg.stop != "held-out" or coarse is None or not found:
+        return None
+    c = coarse["config"]  # the coarse stage's StopParams
+    return {
+        "rule": "coarse pilots",
+        "plateau": found["plateau"],
+        "margin": c["stop_margin"],
+        "stop_at": stop_iteration(found["plateau"], c["stop_margin"], c["stop_min_iterations"], cfg.iterations),
+    }
+
+
 def train_fine(run: StageRun, ws: Workspace, cfg: FineConfig, device: torch.device, seed: int) -> str:
+    stop = held_out_stop(ws, cfg)
+    if stop is not None:
+        cfg = dataclasses.replace(cfg, end_iteration=stop["stop_at"])
+        log(
+            f"fine: stops at iteration {stop['stop_at']} of {cfg.iterations}, {stop['margin']:g} x {stop['plateau']}, "
+            "where the coarse stage's pilots (each photo held out in turn) stopped gaining"
+        )
     inputs = fine_inputs(ws, cfg, device, seed)
     scene, splats, start, frames, bg = inputs.scene, inputs.splats, inputs.start, inputs.frames, inputs.background
     torch.manual_seed(seed)
@@ -194,6 +220,7 @@ def train_fine(run: StageRun, ws: Workspace, cfg: FineConfig, device: torch.devi
             "train_seconds": round(res.seconds, 2),
             "final_loss": res.losses[-1],
             "seed": seed,
+            "stopping": stop,
         }
     )
     origin = {"hull": "the visual hull", "carved hull": "the carved visual hull"}.get(start, "G_c")

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from ...cost import Calibration, SceneFacts, StageCost, cover_factor, loop_s
+from ...cost import EXPECTED_PLATEAU, Calibration, SceneFacts, StageCost, cover_factor, loop_s
 from ...fields import option
+from ...gaussians.stopping import StopParams, StopRule, stop_iteration
 from ...gaussians.trainer import TrainConfig
 from ..stage import FAST_TRAINING, MODEL_OUTPUTS, CurveConfig, LpipsWeightsConfig, Stage, StageEnv
 
@@ -15,8 +17,9 @@ FACTOR = 0.93  # time / modelled work on whole runs (lego at 200 px, ethiopianHe
 
 
 @dataclass
-class FineConfig(LpipsWeightsConfig, CurveConfig, TrainConfig):
-    """Refinement of G_c on the real and the pseudo references."""
+class FineConfig(LpipsWeightsConfig, CurveConfig, StopRule, TrainConfig):
+    """Refinement of G_c on the real and the pseudo references; under the held-out rule (`stop`)
+    G_f stops at the coarse stage's margin times its pilots' plateau."""
 
     iterations: int = 1500
     refine_start: int = 100
@@ -38,6 +41,14 @@ class FineConfig(LpipsWeightsConfig, CurveConfig, TrainConfig):
     rounds: int = option(1, "Rounds of repair + refinement: each later one repairs the refined model's renders again.")
 
 
+def expected_end(cfg: FineConfig, coarse: TrainConfig) -> int | None:
+    """Where G_f is expected to stop before the coarse pilots have run (the coarse models' expected
+    stop, `cost.expected_iterations`, of G_f's own iterations); None where it trains them all."""
+    if cfg.stop != "held-out" or not isinstance(coarse, StopParams) or coarse.stop != "held-out" or coarse.max_seconds:
+        return None
+    return stop_iteration(EXPECTED_PLATEAU, coarse.stop_margin, coarse.stop_min_iterations, cfg.iterations)
+
+
 def run(ws: Any, cfg: FineConfig, env: StageEnv, force: bool) -> bool:
     from .run import run_fine  # on first use: the stage loads the library
 
@@ -47,6 +58,7 @@ def run(ws: Any, cfg: FineConfig, env: StageEnv, force: bool) -> bool:
 def cost(cal: Calibration, cfgs: Mapping[str, Any], facts: SceneFacts, before: Mapping[str, float]) -> StageCost:
     """One loop per round, a pseudo view's step every `pseudo_every` iterations besides the photos'."""
     cfg: FineConfig = cfgs["fine"]
+    cfg = dataclasses.replace(cfg, end_iteration=expected_end(cfg, cfgs["coarse"]))
     return StageCost(
         fixed_steps=10,
         loops=max(1, cfg.rounds),
