@@ -101,6 +101,7 @@ def test_the_held_out_rule_is_modelled_as_its_margin_times_the_expected_plateau_
     fine = configs()["fine"]
     assert expected_end(fine, cfg) == min(fine.iterations, round(cfg.stop_margin * EXPECTED_PLATEAU))
     assert expected_end(dataclasses.replace(fine, stop="iterations"), cfg) is None
+    assert expected_end(dataclasses.replace(fine, max_seconds=60.0), cfg) is None  # the budget decides
     assert expected_end(fine, dataclasses.replace(cfg, stop="iterations")) is None
 
 

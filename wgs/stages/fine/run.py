@@ -155,10 +155,11 @@ def held_out_stop(ws: Workspace, cfg: FineConfig) -> dict | None:
     """Where G_f stops under the held-out rule: the coarse stage's margin times its pilots' plateau
     (each photo held out in turn, `gaussians.stopping`), of G_f's own iterations. The fine stage
     has no pilots of its own: a photo held out of it is learnt back from the pseudo references,
-    which G_c made having seen it (docs/what-we-tried.md). None where either stage's rule is off."""
+    which G_c made having seen it (docs/what-we-tried.md). None where either stage's rule is off
+    or a time budget sets the length."""
     coarse = ws.manifest("coarse")
     found = coarse.get("stopping") if coarse is not None else None
-    if cfg.stop != "held-out" or coarse is None or not found:
+    if cfg.stop != "held-out" or cfg.max_seconds or coarse is None or not found:
         return None
     c = coarse["config"]  # the coarse stage's StopParams
     return {

@@ -44,7 +44,9 @@ class FineConfig(LpipsWeightsConfig, CurveConfig, StopRule, TrainConfig):
 def expected_end(cfg: FineConfig, coarse: TrainConfig) -> int | None:
     """Where G_f is expected to stop before the coarse pilots have run (the coarse models' expected
     stop, `cost.expected_iterations`, of G_f's own iterations); None where it trains them all."""
-    if cfg.stop != "held-out" or not isinstance(coarse, StopParams) or coarse.stop != "held-out" or coarse.max_seconds:
+    if cfg.stop != "held-out" or cfg.max_seconds or not isinstance(coarse, StopParams):
+        return None
+    if coarse.stop != "held-out" or coarse.max_seconds:
         return None
     return stop_iteration(EXPECTED_PLATEAU, coarse.stop_margin, coarse.stop_min_iterations, cfg.iterations)
 
