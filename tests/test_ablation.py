@@ -15,7 +15,7 @@ from wgs.workspace import Workspace
 
 @pytest.mark.slow
 def test_ablate_all_rows(tmp_path):
-    scene = make_scene(tmp_path / "scene", seed=5, size=64, n_train=4, n_test=3)
+    scene = make_scene(tmp_path / "scene", seed=5, size=48, n_train=4, n_test=3)
     cfg = tmp_path / "wgs.toml"
     cfg.write_text(TINY_ONE_MODEL)
     root = tmp_path / "abl"
