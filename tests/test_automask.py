@@ -337,6 +337,18 @@ def test_the_report_says_where_the_masks_came_from_or_why_there_are_none():
     assert both.startswith("No masks") and "crop the object" in both
 
 
+def test_the_silhouette_line_names_the_views_it_scored():
+    """Without test views eval scores the training photos: the silhouette line says so."""
+    from wgs.stages.eval.shape import shape_line
+
+    shape = {"hull_test": None, "carved_hull_test": None, "leave_one_out": {"iou": 0.74}}
+    coarse = {"silhouette_iou": 0.997}
+    line = shape_line(coarse, {"silhouette_iou": 0.996, "views": "training"}, shape)
+    assert line.startswith("silhouette IoU at the training photos (no test views): coarse 0.997 -> fine 0.996")
+    line = shape_line(coarse, {"silhouette_iou": 0.996, "views": "test"}, shape)
+    assert line.startswith("silhouette IoU at the test views: coarse 0.997") and "leave-one-out estimate" in line
+
+
 def test_a_training_photo_that_crops_the_object_is_named(blender_scene, scene_copy, tmp_path):
     """A training photo whose mask reaches the frame's edge crops the object: prepare says which
     and records it; photos that hold the whole object record nothing."""

@@ -71,7 +71,8 @@ def masks_note(scene) -> str | None:
 
 
 def shape_line(coarse: dict, fine: dict, shape: dict) -> str:
-    """One line of silhouette IoUs: hull, G_c and G_f at the test views, and the leave-one-out estimate."""
+    """One line of silhouette IoUs: hull, G_c and G_f at the views eval scored (the test views, or
+    the training photos where the scene has none), and the leave-one-out estimate."""
     parts = []
     if shape["hull_test"] is not None:
         parts.append(f"visual hull {shape['hull_test']['iou']:.3f}")
@@ -79,7 +80,8 @@ def shape_line(coarse: dict, fine: dict, shape: dict) -> str:
         parts.append(f"carved hull {shape['carved_hull_test']['iou']:.3f}")
     if coarse.get("silhouette_iou") is not None:
         parts.append(f"coarse {coarse['silhouette_iou']:.3f} -> fine {fine['silhouette_iou']:.3f}")
-    head = "silhouette IoU at the test views: " + ", ".join(parts) if parts else "no test masks"
+    views = "training photos (no test views)" if fine.get("views") == "training" else "test views"
+    head = f"silhouette IoU at the {views}: " + ", ".join(parts) if parts else "no test masks"
     loo, mirror = shape["leave_one_out"], shape.get("mirror")
     if loo is not None:
         head += f"; leave-one-out estimate (hull of the other photos' masks at each photo's camera) {loo['iou']:.3f}"
