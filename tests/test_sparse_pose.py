@@ -12,6 +12,7 @@ from conftest import expect_error
 from photo_scene import make_photos
 
 from wgs.fields import facts
+from wgs.io.images import read_image, write_png
 from wgs.scene.colmap import read_colmap_scene
 from wgs.scene.pose_error import pose_errors
 from wgs.scene.sfm import MATCHERS, find_photos, pose_photos
@@ -41,6 +42,30 @@ def test_four_photos_45_degrees_apart_are_posed_offline(tmp_path, monkeypatch):
     }
     keys = sorted(posed)
     err = pose_errors(np.stack([posed[k] for k in keys]), np.stack([cams[k][1] for k in keys]))
+    assert np.median(err["rotation_deg"]) <= 2.0 and np.median(err["center"]) <= 0.05, err
+
+
+@pytest.mark.slow
+def test_a_photo_stored_turned_is_matched_turned_and_posed(tmp_path, capsys):
+    """A phone held the other way stores its photo turned (EXIF orientation, which wgs does not
+    apply): photo_001 turned clockwise by 90 degrees matches nothing as it is; matched turned back,
+    all 4 pose, the turned one as a camera rolled by 90 degrees."""
+    cams = make_photos(tmp_path / "p", n=4, width=256, height=256, azimuths=[0, 30, 60, 90])
+    for sub in ("images", "masks"):
+        path = tmp_path / "p" / sub / "photo_001.png"
+        write_png(path, np.ascontiguousarray(np.rot90(read_image(path), -1)))
+    roll = np.eye(4)
+    roll[:2, :2] = [[0, -1], [1, 0]]  # camera (X, Y, Z) -> (-Y, X, Z): the image turned clockwise
+    truth = {k: (roll @ w2c if k == "photo_001.png" else w2c) for k, (_, w2c) in cams.items()}
+    image_dir, names, mask_dir = find_photos(tmp_path / "p")
+    res = pose_photos(image_dir, names, mask_dir, tmp_path / "model", "auto", 1600)
+    assert "photo_001.png matches the others turned by 90 degrees" in " ".join(capsys.readouterr().err.split())
+    assert res.registered == 4
+    posed = {
+        v.name: v.w2c for v in read_colmap_scene(tmp_path / "p", tmp_path / "model", image_dir, fmt="photos").views
+    }
+    keys = sorted(posed)
+    err = pose_errors(np.stack([posed[k] for k in keys]), np.stack([truth[k] for k in keys]))
     assert np.median(err["rotation_deg"]) <= 2.0 and np.median(err["center"]) <= 0.05, err
 
 

@@ -110,6 +110,17 @@ def extract(image: np.ndarray, mask: np.ndarray | None = None, side: int = MATCH
     return Features((kp + 0.5).astype(np.float32), desc.clone(), (w, h))
 
 
+def turned_back(keypoints: np.ndarray, size: tuple[int, int], quarter_turns: int) -> np.ndarray:
+    """Keypoints [N, 2] (COLMAP's continuous pixels) of a photo turned by `np.rot90(photo,
+    quarter_turns)` (counter-clockwise), whose turned size (width, height) is `size` -> the same
+    points in the photo as stored. One turn takes (x, y) of a W-wide photo to (y, W - x)."""
+    x, y = keypoints[:, 0].astype(np.float64), keypoints[:, 1].astype(np.float64)
+    w, h = size
+    for _ in range(quarter_turns % 4):
+        x, y, w, h = h - y, x, h, w  # undo one turn: the photo before it was h wide
+    return np.stack([x, y], 1).astype(keypoints.dtype)
+
+
 @torch.inference_mode()
 def match(a: Features, b: Features) -> tuple[np.ndarray, np.ndarray]:
     """LightGlue's matches between two photos' features: [M, 2] keypoint indices (uint32) and
@@ -126,4 +137,13 @@ def match(a: Features, b: Features) -> tuple[np.ndarray, np.ndarray]:
     return out["matches"][0].numpy().astype(np.uint32), out["scores"][0].numpy().astype(np.float32)
 
 
-__all__ = ["LICENCE", "WEIGHTS_PACKAGE", "Features", "extract", "fused_cross_attention", "match", "weights_dir"]
+__all__ = [
+    "LICENCE",
+    "WEIGHTS_PACKAGE",
+    "Features",
+    "extract",
+    "fused_cross_attention",
+    "match",
+    "turned_back",
+    "weights_dir",
+]

@@ -316,19 +316,22 @@ def _learned_database(
         for name in names:
             features.append(lm.extract(_rgb(read_image(image_dir / name)), masks.get(name)))
             prog.advance(BAR)
+    pairs = list(itertools.combinations(range(len(names)), 2))
+    found: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+    with progress_bar("sfm: learned matching", len(pairs)) as prog:
+        for i, j in pairs:
+            found[(i, j)] = lm.match(features[i], features[j])
+            prog.advance(BAR)
+    turns = _turned_photos(image_dir, names, masks, features, found)
     database = pycolmap.Database.open(db)
     try:
         ids = {im.name: im.image_id for im in database.read_all_images()}
-        for name, f in zip(names, features, strict=True):
-            database.write_keypoints(ids[name], f.keypoints)
-        pairs = list(itertools.combinations(range(len(names)), 2))
+        for name, f, k in zip(names, features, turns, strict=True):
+            database.write_keypoints(ids[name], lm.turned_back(f.keypoints, f.size, k))
         confident = {}
-        with progress_bar("sfm: learned matching", len(pairs)) as prog:
-            for i, j in pairs:
-                matches, scores = lm.match(features[i], features[j])
-                database.write_matches(ids[names[i]], ids[names[j]], matches)
-                confident[(names[i], names[j])] = int((scores > CONFIDENT_SCORE).sum())
-                prog.advance(BAR)
+        for (i, j), (matches, scores) in found.items():
+            database.write_matches(ids[names[i]], ids[names[j]], matches)
+            confident[(names[i], names[j])] = int((scores > CONFIDENT_SCORE).sum())
     finally:
         database.close()
     pair_file = db.parent / "pairs.txt"
@@ -348,6 +351,73 @@ def _learned_database(
     finally:
         database.close()
     return verified
+
+
+def _turned_photos(
+    image_dir: Path,
+    names: list[str],
+    masks: dict[str, np.ndarray],
+    features: list,
+    found: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]],
+) -> list[int]:
+    """Photos stored turned against the others (a phone held the other way, whose EXIF orientation
+    nothing here applies): the learned features are not rotation invariant. The photos joined by
+    confident pairs as stored keep their frame; each other photo is matched against them turned by
+    0, 90, 180 and 270 degrees, and the photo and turn with the most confident matches (at least
+    MIN_CONFIDENT) joins them, until none does. Nothing is tried where no pair is confident (a
+    capture whose photos share nothing costs no more). `features` and `found` are updated in place
+    (a turned photo's features in its turned frame); returns each photo's quarter turns."""
+    from . import learned_matching as lm
+
+    def confident(pair_matches: tuple[np.ndarray, np.ndarray]) -> int:
+        return int((pair_matches[1] > CONFIDENT_SCORE).sum())
+
+    n = len(names)
+    turns = [0] * n
+    strong = [pair for pair, m in found.items() if confident(m) >= MIN_CONFIDENT]
+    if not strong:
+        return turns
+    # the stored frame: the photos confidently joined, as stored, to the most confident pair
+    first: tuple[int, int] = max(strong, key=lambda pair: confident(found[pair]))
+    joined = set(first)
+    while grown := {i for pair in strong if set(pair) & joined for i in pair} - joined:
+        joined |= grown
+    turned: dict[tuple[int, int], lm.Features] = {}
+    tried: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray]] = {}  # (photo, turn, joined photo)
+
+    def candidate(i: int, k: int):
+        if k == 0:
+            return features[i]
+        if (i, k) not in turned:
+            mask = masks.get(names[i])
+            turned[(i, k)] = lm.extract(
+                np.rot90(_rgb(read_image(image_dir / names[i])), k), None if mask is None else np.rot90(mask, k)
+            )
+        return turned[(i, k)]
+
+    def matched(i: int, k: int, j: int) -> tuple[np.ndarray, np.ndarray]:
+        if (i, k, j) not in tried:
+            if k == 0 and turns[j] == 0:
+                tried[(i, k, j)] = found[(min(i, j), max(i, j))]
+            else:
+                a, b = (candidate(i, k), features[j]) if i < j else (features[j], candidate(i, k))
+                tried[(i, k, j)] = lm.match(a, b)
+        return tried[(i, k, j)]
+
+    while rest := [i for i in range(n) if i not in joined]:
+        score, i, k = max((max(confident(matched(i, k, j)) for j in joined), i, k) for i in rest for k in range(4))
+        if score < MIN_CONFIDENT:
+            break
+        joined.add(i)
+        if k:
+            turns[i], features[i] = k, candidate(i, k)
+            log(f"sfm: {names[i]} matches the others turned by {90 * k} degrees (stored turned: posed as it is)")
+    # a turned photo's pairs, matched with the features it keeps
+    for a, b in sorted({(min(i, j), max(i, j)) for i in range(n) if turns[i] for j in range(n) if j != i}):
+        i, j = (a, b) if turns[a] else (b, a)
+        kept = tried.get((i, turns[i], j)) if turns[j] == 0 else None
+        found[(a, b)] = kept if kept is not None else lm.match(features[a], features[b])
+    return turns
 
 
 def _incremental_mapping(db: Path, image_dir: Path, tmp: Path, n: int, threads: int, sparse: bool, focal):
