@@ -11,6 +11,7 @@ import pytest
 from conftest import expect_error
 from photo_scene import make_photos
 
+from wgs import progress
 from wgs.fields import facts
 from wgs.io.images import read_image, write_png
 from wgs.scene.colmap import read_colmap_scene
@@ -46,7 +47,7 @@ def test_four_photos_45_degrees_apart_are_posed_offline(tmp_path, monkeypatch):
 
 
 @pytest.mark.slow
-def test_a_photo_stored_turned_is_matched_turned_and_posed(tmp_path, capsys):
+def test_a_photo_stored_turned_is_matched_turned_and_posed(tmp_path, capsys, monkeypatch):
     """A phone held the other way stores its photo turned (EXIF orientation, which wgs does not
     apply): photo_001 turned clockwise by 90 degrees matches nothing as it is; matched turned back,
     all 4 pose, the turned one as a camera rolled by 90 degrees."""
@@ -58,6 +59,8 @@ def test_a_photo_stored_turned_is_matched_turned_and_posed(tmp_path, capsys):
     roll[:2, :2] = [[0, -1], [1, 0]]  # camera (X, Y, Z) -> (-Y, X, Z): the image turned clockwise
     truth = {k: (roll @ w2c if k == "photo_001.png" else w2c) for k, (_, w2c) in cams.items()}
     image_dir, names, mask_dir = find_photos(tmp_path / "p")
+    monkeypatch.setattr(progress, "_quiet", False)  # an earlier `wgs -q` in this worker set it
+    monkeypatch.setattr(progress.console, "quiet", False)
     res = pose_photos(image_dir, names, mask_dir, tmp_path / "model", "auto", 1600)
     assert "photo_001.png matches the others turned by 90 degrees" in " ".join(capsys.readouterr().err.split())
     assert res.registered == 4

@@ -45,6 +45,10 @@ WEAK_IMAGE_SHARE = 0.15
 # while pairs whose geometry is right have 43-700 (tools/experiments/xp_pair_confidence.py)
 MIN_CONFIDENT = 20
 CONFIDENT_SCORE = 0.5
+# learned matching: a photo with no confident pair is tried turned against the others with every
+# 4th keypoint (LightGlue's cost grows as the square of the keypoints; the turn that joins is then
+# matched whole)
+TURN_SEARCH_STRIDE = 4
 MIN_REGISTERED = 3
 # the seed of COLMAP's RANSAC in two-view verification and in the mapper; left random, the same 4
 # lego photos posed 1.93 or 1.94 degrees off from one run to the next, and once 5.12
@@ -362,15 +366,23 @@ def _turned_photos(
 ) -> list[int]:
     """Photos stored turned against the others (a phone held the other way, whose EXIF orientation
     nothing here applies): the learned features are not rotation invariant. The photos joined by
-    confident pairs as stored keep their frame; each other photo is matched against them turned by
-    0, 90, 180 and 270 degrees, and the photo and turn with the most confident matches (at least
-    MIN_CONFIDENT) joins them, until none does. Nothing is tried where no pair is confident (a
-    capture whose photos share nothing costs no more). `features` and `found` are updated in place
-    (a turned photo's features in its turned frame); returns each photo's quarter turns."""
+    confident pairs as stored keep their frame; each other group of them is tried against those,
+    its first photo turned by 0, 90, 180 and 270 degrees (every TURN_SEARCH_STRIDE-th keypoint),
+    and the group and turn with the most confident matches joins them where the photo's whole
+    features give at least MIN_CONFIDENT, until none does. Nothing is tried where no pair is
+    confident (a capture whose photos share nothing costs no more). `features` and `found` are
+    updated in place (a turned photo's features in its turned frame); returns each photo's quarter
+    turns."""
     from . import learned_matching as lm
 
     def confident(pair_matches: tuple[np.ndarray, np.ndarray]) -> int:
         return int((pair_matches[1] > CONFIDENT_SCORE).sum())
+
+    def thinned(f):
+        return lm.Features(f.keypoints[::TURN_SEARCH_STRIDE], f.descriptors[::TURN_SEARCH_STRIDE], f.size)
+
+    def ordered(i: int, fi, j: int, fj) -> tuple[np.ndarray, np.ndarray]:
+        return lm.match(fi, fj) if i < j else lm.match(fj, fi)
 
     n = len(names)
     turns = [0] * n
@@ -382,41 +394,53 @@ def _turned_photos(
     joined = set(first)
     while grown := {i for pair in strong if set(pair) & joined for i in pair} - joined:
         joined |= grown
-    turned: dict[tuple[int, int], lm.Features] = {}
-    tried: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray]] = {}  # (photo, turn, joined photo)
+    candidates: dict[tuple[int, int], lm.Features] = {}
+    searched: dict[tuple[int, int, int], int] = {}  # (photo, turn, joined photo): confident matches, thinned
 
     def candidate(i: int, k: int):
-        if k == 0:
-            return features[i]
-        if (i, k) not in turned:
+        if (i, k) not in candidates:
             mask = masks.get(names[i])
-            turned[(i, k)] = lm.extract(
-                np.rot90(_rgb(read_image(image_dir / names[i])), k), None if mask is None else np.rot90(mask, k)
+            candidates[(i, k)] = (
+                features[i]
+                if k == 0
+                else lm.extract(
+                    np.rot90(_rgb(read_image(image_dir / names[i])), k), None if mask is None else np.rot90(mask, k)
+                )
             )
-        return turned[(i, k)]
+        return candidates[(i, k)]
 
-    def matched(i: int, k: int, j: int) -> tuple[np.ndarray, np.ndarray]:
-        if (i, k, j) not in tried:
-            if k == 0 and turns[j] == 0:
-                tried[(i, k, j)] = found[(min(i, j), max(i, j))]
-            else:
-                a, b = (candidate(i, k), features[j]) if i < j else (features[j], candidate(i, k))
-                tried[(i, k, j)] = lm.match(a, b)
-        return tried[(i, k, j)]
+    def search(i: int, k: int, j: int) -> int:
+        if (i, k, j) not in searched:
+            searched[(i, k, j)] = confident(ordered(i, thinned(candidate(i, k)), j, thinned(features[j])))
+        return searched[(i, k, j)]
 
-    while rest := [i for i in range(n) if i not in joined]:
-        score, i, k = max((max(confident(matched(i, k, j)) for j in joined), i, k) for i in rest for k in range(4))
-        if score < MIN_CONFIDENT:
-            break
-        joined.add(i)
-        if k:
-            turns[i], features[i] = k, candidate(i, k)
-            log(f"sfm: {names[i]} matches the others turned by {90 * k} degrees (stored turned: posed as it is)")
-    # a turned photo's pairs, matched with the features it keeps
-    for a, b in sorted({(min(i, j), max(i, j)) for i in range(n) if turns[i] for j in range(n) if j != i}):
-        i, j = (a, b) if turns[a] else (b, a)
-        kept = tried.get((i, turns[i], j)) if turns[j] == 0 else None
-        found[(a, b)] = kept if kept is not None else lm.match(features[a], features[b])
+    # the other photos in groups joined by confident pairs as stored: a group turns as one, and
+    # its first photo is the one tried
+    group = {i: [i] for i in range(n) if i not in joined}
+    for a, b in strong:
+        if a in group and b in group and group[a] is not group[b]:
+            merged = sorted(group[a] + group[b])
+            for i in merged:
+                group[i] = merged
+    left_out: set[int] = set()
+    while rest := sorted({group[i][0] for i in group if i not in joined | left_out}):
+        _, i, k = max((max(search(i, k, j) for j in joined), i, k) for i in rest for k in range(4))
+        whole = {j: ordered(i, candidate(i, k), j, features[j]) for j in joined}
+        if max(confident(m) for m in whole.values()) < MIN_CONFIDENT:
+            left_out.update(group[i])
+            continue
+        for m in group[i]:  # the photo tried first, then the rest of its group, each matched whole
+            whole = whole if m == i else {j: ordered(m, candidate(m, k), j, features[j]) for j in joined}
+            joined.add(m)
+            turns[m], features[m] = k, candidate(m, k)
+            found.update({(min(m, j), max(m, j)): pair for j, pair in whole.items()})
+            if k:
+                log(f"sfm: {names[m]} matches the others turned by {90 * k} degrees (stored turned: posed as it is)")
+    # a turned photo's pairs with the photos that did not join (those that did were matched whole
+    # as they joined), matched with the features it keeps
+    for i in (i for i in range(n) if turns[i]):
+        for j in (j for j in range(n) if j not in joined):
+            found[(min(i, j), max(i, j))] = ordered(i, features[i], j, features[j])
     return turns
 
 
