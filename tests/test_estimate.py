@@ -81,9 +81,14 @@ def test_stage_seconds_grow_with_size_and_iterations():
         assert large[t] > small[t]
     assert longer["coarse"] > 1.8 * (every["coarse"] - 25 * CAL.d_step_s)
     assert longer["fine"] == every["fine"]  # the coarse stage's iterations are not G_f's
-    assert small["fine"] < every["fine"]  # under the held-out rule G_f stops where the coarse models do
+    assert small["fine"] == every["fine"]  # the expected plateau's stop (3 x 625) is past the 1500 iterations
+    early = stage_seconds(CAL, configs(coarse={"stop_margin": 1.5}), SceneFacts(128, 128, 4, 8))
+    assert early["fine"] < every["fine"]  # under the held-out rule G_f stops where the coarse models do
     fast = stage_seconds(CAL, configs("fast"), SceneFacts(128, 128, 4, 8))
     assert sum(fast.values()) < sum(small.values()) / 3
+    # the ensemble's other models longer at half size: a shorter stage, but not below G_c's share of it
+    halved = stage_seconds(CAL, configs(coarse={"member_half_size_until": 1.0}), SceneFacts(128, 128, 4, 8))
+    assert small["coarse"] / 2 < halved["coarse"] < small["coarse"]
 
 
 def test_the_held_out_rule_is_modelled_as_its_margin_times_the_expected_plateau_plus_its_pilots():
@@ -94,9 +99,11 @@ def test_the_held_out_rule_is_modelled_as_its_margin_times_the_expected_plateau_
     assert expected_iterations(dataclasses.replace(cfg, max_seconds=60.0)) == cfg.iterations  # the budget decides
     facts = SceneFacts(128, 128, 4, 8)
     assert pilots_s(CAL, cfg, facts, 1) > 0 == pilots_s(CAL, dataclasses.replace(cfg, stop="iterations"), facts, 1)
-    # twice the iterations: the stop (3 x 400) is below both, and more of it in the schedule's half-size share
-    longer = stage_seconds(CAL, configs(coarse={"iterations": 3000}), facts)
-    assert 0.5 < longer["coarse"] / stage_seconds(CAL, configs(), facts)["coarse"] < 1
+    # twice the iterations with a margin of 1.5: the stop (1.5 x 625) is below both, and more of it in
+    # the schedule's half-size share
+    early = {"stop_margin": 1.5}
+    longer = stage_seconds(CAL, configs(coarse={**early, "iterations": 3000}), facts)
+    assert 0.5 < longer["coarse"] / stage_seconds(CAL, configs(coarse=early), facts)["coarse"] < 1
     # G_f stops at the coarse stage's margin times the expected plateau, of its own iterations
     fine = configs()["fine"]
     assert expected_end(fine, cfg) == min(fine.iterations, round(cfg.stop_margin * EXPECTED_PLATEAU))

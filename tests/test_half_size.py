@@ -114,3 +114,19 @@ def test_the_fast_preset_trains_at_full_size_and_the_default_does_not():
     for stage in ("coarse", "mask_data", "fine"):
         assert resolve(stage, "fast", {}, {}).half_size_until == 0.0
         assert resolve(stage, None, {}, {}).half_size_until > 0.0
+    assert resolve("coarse", "fast", {}, {}).member_half_size_until == 0.0
+
+
+def test_the_ensembles_other_models_train_at_half_size_for_their_own_share():
+    from wgs.config import resolve
+    from wgs.errors import WgsError
+    from wgs.stages.coarse.settings import model_config
+
+    cfg = resolve("coarse", None, {}, {})
+    assert model_config(cfg, 0) == cfg  # G_c keeps its own
+    members = {model_config(cfg, i).half_size_until for i in range(1, cfg.ensemble)}
+    assert members == {cfg.member_half_size_until} and cfg.member_half_size_until > cfg.half_size_until
+    halved = resolve("coarse", None, {"coarse": {"member_half_size_until": 1.0}}, {})
+    assert {model_config(halved, i).half_size_until for i in range(1, halved.ensemble)} == {1.0}
+    with pytest.raises(WgsError, match="member_half_size_until"):
+        resolve("coarse", None, {"coarse": {"member_half_size_until": 1.5}}, {})

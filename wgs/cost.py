@@ -34,9 +34,11 @@ NO_MASKS_FACTOR = 1.9
 # side-by-side coarse models (one thread each, `threads.side_by_side`) train this many
 # times as fast, together, as one model on every thread (measured on 2 cores, wgs/threads.py)
 SIDE_BY_SIDE_THROUGHPUT = 1.5
-# Where the held-out stopping rule's pilots stop gaining, for the estimate made before they run
-# (lego, 4 views at 200x200: 400, python -m wgs all ... --downscale 2, 2026-11-28)
-EXPECTED_PLATEAU = 400
+# Where the held-out stopping rule's pilots stop gaining, for the estimate made before they run: the
+# median over seven kinds of capture (125-700: lego 400, a generated object 45 degrees apart 425,
+# close-ups 125 and 625, no masks 625, all around 700 and 700; docs/speed.md), so that the usual
+# capture trains all its iterations, as its stop at 3 x 625 says
+EXPECTED_PLATEAU = 625
 D_STEP_BATCH, D_STEP_CROP, D_STEP_CHANNELS = 16, 32, 32  # the D training step timed
 
 

@@ -34,7 +34,7 @@ from ...threads import map_in_processes, side_by_side
 from ...workspace import StageRun, Workspace
 from ..shared import background_for, initial_splats, member_file, subbands_hwc
 from ..stage import StageEnv
-from .settings import CoarseConfig
+from .settings import CoarseConfig, model_config
 
 
 def write_coarse_outputs(run: StageRun, scene: PreparedScene, splats: Splats, device: torch.device) -> dict:
@@ -184,7 +184,7 @@ def train_coarse(run: StageRun, ws: Workspace, cfg: CoarseConfig, device: torch.
     jobs = [
         (
             ws,
-            cfg,
+            model_config(cfg, i),
             device,
             seed + i,
             "coarse" if i == 0 else f"coarse member {i + 1}/{cfg.ensemble}",

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import statistics
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -37,6 +39,14 @@ class CoarseConfig(CurveConfig, StopParams, TrainConfig):
         bounds=(1, None),
     )
     half_size_until: float = 0.3
+    # the share of the schedule at half size for the ensemble's other models (not G_c): the repair
+    # averages their renders, and their later iterations at full size cost most (docs/speed.md)
+    member_half_size_until: float = option(0.6, bounds=(0.0, 1.0))
+
+
+def model_config(cfg: CoarseConfig, index: int) -> CoarseConfig:
+    """The settings of the ensemble's model `index` (0: G_c)."""
+    return cfg if index == 0 else dataclasses.replace(cfg, half_size_until=cfg.member_half_size_until)
 
 
 def run(ws: Any, cfg: CoarseConfig, env: StageEnv, force: bool) -> bool:
@@ -69,7 +79,8 @@ def cost(cal: Calibration, cfgs: Mapping[str, Any], facts: SceneFacts, before: M
     return StageCost(
         fixed_steps=25,
         loops=math.ceil(cfg.ensemble / workers),
-        loop_s=loop_s(cal, cfg, facts.pixels) * side_by_side_share(workers),
+        loop_s=statistics.fmean(loop_s(cal, model_config(cfg, i), facts.pixels) for i in range(cfg.ensemble))
+        * side_by_side_share(workers),
         factor=factor,
         other_s=factor * pilots_s(cal, cfg, facts, pilots),
     )
@@ -90,7 +101,14 @@ STAGE = Stage(
     },
     presets={
         # 400 iterations leave the held-out rule's pilots (about a model's cost) nothing to save
-        "fast": {**FAST_TRAINING, "iterations": 400, "refine_stop": 300, "ensemble": 1, "stop": "iterations"},
+        "fast": {
+            **FAST_TRAINING,
+            "iterations": 400,
+            "refine_stop": 300,
+            "ensemble": 1,
+            "stop": "iterations",
+            "member_half_size_until": 0.0,  # full size, as FAST_TRAINING's G_c
+        },
         "paper": {
             "iterations": 10000,
             "refine_stop": 7000,

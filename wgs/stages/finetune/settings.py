@@ -12,9 +12,10 @@ from ...fields import option
 from ..stage import Stage, StageEnv
 
 FACTOR = 1.75  # time / modelled D steps on whole runs (lego at 200 px, ethiopianHead at 307 px; docs/speed.md)
-# the HF U-Net U: a step's cost in D steps, and the share of its step limit it runs on average (it
-# stops early where it does not beat no repair: 250 of 1500 steps on lego, all 1500 on ethiopianHead)
-U_STEP_SHARE, U_STEPS_RUN = 0.3, 0.5
+# the HF U-Net U's step in D steps; U is modelled at the fewest steps its early stop allows
+# (`u_patience` checks that do not beat no repair): 250 of 1500 on lego, a mug, two close-ups and
+# 4 photos without masks, all 1500 only on ethiopianHead (docs/speed.md)
+U_STEP_SHARE = 0.3
 HELD_OUT_PAIRS = 44  # D's held-out check runs on about this many of G_d's pairs times `holdout`
 
 
@@ -87,7 +88,7 @@ def cost(cal: Calibration, cfgs: Mapping[str, Any], facts: SceneFacts, before: M
     ft: FinetuneConfig = cfgs["finetune"]
     d_steps = ft.prior_steps if ft.prior != "none" else ft.d_steps
     width = (ft.d_channels / D_STEP_CHANNELS) ** 2 * (ft.d_batch * ft.d_crop**2) / (D_STEP_BATCH * D_STEP_CROP**2)
-    u_steps = ft.u_max_steps * U_STEPS_RUN if ft.use_u and ft.domain == "wavelet" else 0
+    u_steps = min(ft.u_max_steps, ft.u_patience * ft.u_eval_every) if ft.use_u and ft.domain == "wavelet" else 0
     # D's held-out check: SDEdit on the held-out pairs every prior_eval_every steps
     checks = (
         (d_steps // max(ft.prior_eval_every, 1) + 1)
