@@ -1,6 +1,7 @@
 """LightGlue's cross-attention fused on the CPU (`learned_matching.fused_cross_attention`) against
-kornia's own forward, on a tiny block with random weights."""
+kornia's own forward, on a tiny block with random weights; ALIKED channels-last against contiguous."""
 
+import numpy as np
 import pytest
 import torch
 from kornia.feature.lightglue import CrossBlock
@@ -46,3 +47,22 @@ def test_gradcheck_float64():
     x0 = torch.randn(1, 3, 16, dtype=torch.float64, requires_grad=True)
     x1 = torch.randn(1, 4, 16, dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(lambda a, b: fused_cross_attention(block, a, b), (x0, x1))
+
+
+def test_channels_last_extraction_finds_the_contiguous_models_keypoints():
+    """ALIKED runs channels-last (faster on the CPU); the keypoints and descriptors are the
+    contiguous model's, on a textured 192x256 image enlarged to MATCH_SIDE."""
+    from wgs.scene import learned_matching as lm
+
+    rng = np.random.default_rng(0)
+    image = np.clip(rng.random((24, 32, 3)).repeat(8, 0).repeat(8, 1) + rng.normal(0, 0.02, (192, 256, 3)), 0, 1)
+    fast = lm.extract(image)
+    extractor, _ = lm._models()
+    try:
+        extractor.to(memory_format=torch.contiguous_format)  # type: ignore[call-overload]
+        reference = lm.extract(image)
+    finally:
+        extractor.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
+    assert len(fast.keypoints) > 100 and len(fast.keypoints) == len(reference.keypoints)
+    np.testing.assert_allclose(fast.keypoints, reference.keypoints, atol=1e-3)
+    torch.testing.assert_close(fast.descriptors, reference.descriptors, rtol=1e-3, atol=1e-4)

@@ -14,6 +14,7 @@ database to run.
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import os
 import shutil
 import signal
@@ -67,6 +68,50 @@ def memory_mb() -> int:
 
 
 NODE = "wgsnode"
+DAEMONS = ("slurmctld", "slurmd", "slurmstepd", "munged")
+PR_SET_CHILD_SUBREAPER = 36  # <linux/prctl.h>
+
+
+def become_subreaper() -> None:
+    """Make orphaned descendants (slurmstepd leaves slurmd's process group) this process's children,
+    not PID 1's: a container's PID 1 may never reap them, and they would stay as zombies."""
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.prctl(PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0) != 0:
+        raise OSError(ctypes.get_errno(), "prctl(PR_SET_CHILD_SUBREAPER)")
+
+
+def children() -> dict[int, tuple[str, str]]:
+    """This process's children: pid -> (command name, state letter; Z for a zombie)."""
+    found = {}
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit():
+            continue
+        try:
+            stat = (proc / "stat").read_text()
+        except OSError:
+            continue
+        name = stat[stat.index("(") + 1 : stat.rindex(")")]
+        state, ppid = stat[stat.rindex(")") + 2 :].split()[:2]
+        if int(ppid) == os.getpid():
+            found[int(proc.name)] = (name, state)
+    return found
+
+
+def end_daemon_children(timeout_s: float = 10) -> None:
+    """SIGKILL this process's children that are Slurm or munge daemons, and reap them and every
+    zombie child."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        left = {pid: s for pid, s in children().items() if s[0] in DAEMONS or s[1] == "Z"}
+        if not left:
+            return
+        for pid, (_, state) in left.items():
+            with contextlib.suppress(ProcessLookupError, ChildProcessError):
+                if state != "Z":
+                    os.kill(pid, signal.SIGKILL)
+                os.waitpid(pid, os.WNOHANG)
+        time.sleep(0.1)
+    raise RuntimeError(f"local slurm: children left after {timeout_s:.0f} s: {children()}")
 
 
 class LocalSlurm:
@@ -144,6 +189,7 @@ class LocalSlurm:
 
     def start(self, timeout_s: float = 60) -> LocalSlurm:
         try:
+            become_subreaper()
             self.write_config()
             key = self.dir / "munge" / "munge.key"
             key.write_bytes(os.urandom(1024))
@@ -199,8 +245,9 @@ class LocalSlurm:
 
     # ------------------------------------------------------------------ tear-down
     def stop(self) -> None:
-        """Cancel every job, SIGTERM every daemon's process group, SIGKILL what is left, and then
-        any process of a job (they carry this cluster's SLURM_CONF in their environment)."""
+        """Cancel every job, SIGTERM every daemon's process group, SIGKILL what is left, then any
+        process of a job (they carry this cluster's SLURM_CONF in their environment), and reap the
+        orphans that came back to this process (see `become_subreaper`)."""
         if self.procs and self.procs[-1].poll() is None:
             self.run("scancel", "--full", "--quiet", *self.job_ids(), check=False)
             end = time.monotonic() + 30
@@ -222,6 +269,7 @@ class LocalSlurm:
         for pid in self.job_processes():
             with contextlib.suppress(ProcessLookupError, PermissionError):
                 os.kill(pid, signal.SIGKILL)
+        end_daemon_children()
         if not os.environ.get("WGS_KEEP_SLURM"):  # set it to read the daemons' logs afterwards
             shutil.rmtree(self.dir, ignore_errors=True)
 

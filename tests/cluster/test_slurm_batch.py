@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 from conftest import TINY_ONE_MODEL, make_scene
-from local_slurm import LocalSlurm
+from local_slurm import DAEMONS, LocalSlurm, children
 
 from wgs.workspace import Workspace
 
@@ -180,3 +180,4 @@ def test_a_cluster_stopped_with_a_job_running_leaves_no_process(tmp_path):
     left = subprocess.run(["pgrep", "-f", folder], capture_output=True, text=True).stdout.split()
     assert not left, subprocess.run(["ps", "-fp", ",".join(left)], capture_output=True, text=True).stdout
     assert not slurm.job_processes()
+    assert not {pid: c for pid, c in children().items() if c[0] in DAEMONS or c[1] == "Z"}, children()

@@ -1,7 +1,8 @@
 """LightGlue with its cross-attention fused (`learned_matching.fused_cross_attention`, what wgs
 runs) against kornia's own forward: the same 4 generated photos (tests/photo_scene.py, 320x240,
 masks, 45 degrees apart), their 6 pairs matched both ways in turn on one thread; the time of each
-round, and per pair whether the matches are the same and how far the confidences differ.
+round, and per pair whether the matches are the same and how far the confidences differ. Then
+ALIKED's extraction of the 4 photos channels-last (what wgs runs) against contiguous, in turn.
 
     python tools/experiments/xp_fused_attention.py [--rounds 2]
 """
@@ -43,7 +44,8 @@ def main() -> None:
         make_photos(Path(tmp), n=4, azimuths=[0, 45, 90, 135])
         image_dir, names, mask_dir = find_photos(Path(tmp))
         masks = grown_masks(image_dir, names, mask_dir) if mask_dir is not None else {}
-        feats = [lm.extract(read_image(image_dir / n)[..., :3], masks.get(n)) for n in names]
+        images = [read_image(image_dir / n)[..., :3] for n in names]
+        feats = [lm.extract(image, masks.get(n)) for n, image in zip(names, images, strict=True)]
     _, matcher = lm._models()
     pairs = list(itertools.combinations(range(len(feats)), 2))
     seconds: dict[str, list[float]] = {"fused": [], "kornia": []}
@@ -62,6 +64,20 @@ def main() -> None:
         same = ma.shape == mb.shape and bool((ma == mb).all())
         diff = f"{np.abs(sa - sb).max():.1e}" if same else ""
         print(f"| {i}+{j} | {len(ma)} / {len(mb)} | {same} | {(sa > 0.5).sum()} / {(sb > 0.5).sum()} | {diff} |")
+    extractor, _ = lm._models()
+    layouts = {"channels-last": torch.channels_last, "contiguous": torch.contiguous_format}
+    extract_s: dict[str, list[float]] = {k: [] for k in layouts}
+    found = {}
+    for _ in range(args.rounds):
+        for mode, layout in layouts.items():
+            extractor.to(memory_format=layout)
+            t0 = time.perf_counter()
+            found[mode] = [lm.extract(image, masks.get(n)) for n, image in zip(names, images, strict=True)]
+            extract_s[mode].append(time.perf_counter() - t0)
+    extractor.to(memory_format=torch.channels_last)
+    pairs_found = zip(found["channels-last"], found["contiguous"], strict=True)
+    same = all(np.allclose(a.keypoints, b.keypoints, atol=1e-3) for a, b in pairs_found)
+    print(f"seconds to extract {len(images)} photos: {extract_s}; the same keypoints: {same}")
 
 
 if __name__ == "__main__":
