@@ -10,7 +10,7 @@ import torch
 from conftest import TINY_HELD_OUT, make_scene
 from test_resume import assert_same_model, copy_workspace, start_and_signal_when, wgs_cmd
 
-from wgs.gaussians.stopping import mean_curve, pilot_cap, plateau_iteration, smoothed, still_gaining
+from wgs.gaussians.stopping import mean_curve, pilot_cap, plateau_iteration, plateau_past, smoothed, still_gaining
 
 
 def rising_then_falling(peak=300, top=20.0, end=600, every=25):
@@ -49,6 +49,20 @@ def test_a_pilot_runs_no_further_than_its_curve_can_shorten_the_run():
     assert round(3.0 * (cap - 250)) >= 1500  # a plateau seen only at the cap leaves all 1500 iterations
     assert pilot_cap(300, 1.0, 250) == 300  # never past the run itself
     assert pilot_cap(1000, 3.0, 250) == 584
+
+
+def test_a_pilot_ends_once_its_plateau_lies_past_where_the_run_keeps_every_iteration():
+    rising = [(it, 10.0 + it / 100) for it in range(0, 751, 25)]  # +0.25 dB every 25 iterations
+    assert plateau_past(rising[: 21 + 1], 500, 0.1)  # 525 beats everything up to 500 by 0.25
+    assert not plateau_past(rising[: 20 + 1], 500, 0.1)  # nothing past 500 yet
+    slow = [(it, 10.0 + it / 1000) for it in range(0, 751, 25)]
+    assert not plateau_past(slow[: 22 + 1], 500, 0.1)  # 550: +0.05 dB, within the tolerance
+    assert plateau_past(slow, 500, 0.1)
+    # each pilot cut where it shows so: the mean curve's plateau still lies past the point
+    ends = [next(k for k in range(len(c)) if plateau_past(c[: k + 1], 500, 0.1)) for c in (rising, slow)]
+    cut = [c[: k + 1] for c, k in zip((rising, slow), ends, strict=True)]
+    assert plateau_iteration(mean_curve(cut), 0.1) > 500
+    assert not plateau_past([(0, 10.0), (500, 14.0), (525, 13.0), (550, 14.05)], 500, 0.1)  # peaked by 500
 
 
 @pytest.fixture(scope="module")

@@ -84,6 +84,16 @@ def still_gaining(curve: Curve, tolerance_db: float, patience: int) -> bool:
     return any(s > best_before + tolerance_db for it, s in curve if it > last - patience)
 
 
+def plateau_past(curve: Curve, point: float, tolerance_db: float) -> bool:
+    """Whether the curve already shows that its plateau lies past iteration `point`: a later score
+    beats every score up to `point` by more than `tolerance_db`. A pilot that shows it for the
+    point past which every plateau leaves the run all its iterations (`iterations / margin`) has
+    nothing more to say. When every pilot ends so, their mean curve's last score also beats its
+    scores up to `point` by more than the tolerance."""
+    before = max((s for it, s in curve if it <= point), default=math.inf)
+    return any(s > before + tolerance_db for it, s in curve if it > point)
+
+
 def mean_curve(curves: list[Curve]) -> Curve:
     """The pilots' mean curve at their common probe iterations; a pilot that ended earlier (it had
     stopped gaining) counts with its last score after its end."""
@@ -103,6 +113,7 @@ __all__ = [
     "mean_curve",
     "pilot_cap",
     "plateau_iteration",
+    "plateau_past",
     "smoothed",
     "still_gaining",
     "stop_iteration",

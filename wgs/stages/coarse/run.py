@@ -18,6 +18,7 @@ from ...gaussians.stopping import (
     mean_curve,
     pilot_cap,
     plateau_iteration,
+    plateau_past,
     smoothed,
     still_gaining,
     stop_iteration,
@@ -80,11 +81,15 @@ def train_model(
     return res, names
 
 
-def train_pilot(ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: int, held_out: str) -> Curve:
+def train_pilot(
+    ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: int, held_out: str, end_when_past: bool = True
+) -> Curve:
     """One pilot of the stopping rule: the coarse model at half size without the photo `held_out`
     (its visual hull from the other photos' masks), its PSNR at that photo every `cfg.stop_every`
-    iterations until it stops gaining, or until `pilot_cap`, past which its curve cannot shorten
-    the run (`gaussians.stopping`). Module level so that a spawned process can run it."""
+    iterations until it stops gaining, until it shows that its plateau lies past the point where
+    every plateau leaves the run all its iterations (`plateau_past`; not with `end_when_past`
+    False, to compare whole curves), or until `pilot_cap` (`gaussians.stopping`). Module level so
+    that a spawned process can run it."""
     scene = load_prepared(ws.output("prepare", "prepared"))
     fold = dataclasses.replace(scene, train=[f for f in scene.train if f.name != held_out])
     bg = background_for(scene)
@@ -92,9 +97,9 @@ def train_pilot(ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: in
     ref = composite(target.pixels, target.mask, bg)
 
     def stopped(curve: list[dict[str, float]]) -> bool:
-        return not still_gaining(
-            [(int(p["iteration"]), p["psnr"]) for p in curve], cfg.stop_tolerance_db, cfg.stop_patience
-        )
+        points = [(int(p["iteration"]), p["psnr"]) for p in curve]
+        past = end_when_past and plateau_past(points, cfg.iterations / cfg.stop_margin, cfg.stop_tolerance_db)
+        return past or not still_gaining(points, cfg.stop_tolerance_db, cfg.stop_patience)
 
     probe = Probe(
         lambda splats: {"psnr": psnr(render_frame(splats, target, device, bg)[0], ref)},
@@ -237,4 +242,4 @@ def train_coarse(run: StageRun, ws: Workspace, cfg: CoarseConfig, device: torch.
 
 
 # what tools and other packages may use; the rest is this stage's own
-__all__ = ["run_coarse"]
+__all__ = ["run_coarse", "train_pilot"]

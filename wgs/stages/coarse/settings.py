@@ -57,10 +57,16 @@ def run(ws: Any, cfg: CoarseConfig, env: StageEnv, force: bool) -> bool:
 
 def pilots_s(cal: Calibration, cfg: CoarseConfig, facts: SceneFacts, workers: int) -> float:
     """The held-out rule's pilots: one per photo (at most `stop_pilots`) at half size, each until
-    `stop_patience` past the expected plateau, at most `pilot_cap`; 0 where the rule is off."""
+    `stop_patience` past the expected plateau, or, where that plateau leaves the run all its
+    iterations, until the expected plateau (by then a pilot has shown it, `plateau_past`); at most
+    `pilot_cap`; 0 where the rule is off."""
     if cfg.stop != "held-out" or cfg.max_seconds:
         return 0.0
-    length = min(pilot_cap(cfg.iterations, cfg.stop_margin, cfg.stop_patience), EXPECTED_PLATEAU + cfg.stop_patience)
+    late = EXPECTED_PLATEAU > cfg.iterations / cfg.stop_margin
+    length = min(
+        pilot_cap(cfg.iterations, cfg.stop_margin, cfg.stop_patience),
+        EXPECTED_PLATEAU + (0 if late else cfg.stop_patience),
+    )
     return (
         math.ceil(min(facts.n_train, cfg.stop_pilots) / workers)
         * length
