@@ -19,6 +19,7 @@ from wgs.cost import (
     SceneFacts,
     cover_factor,
     expected_iterations,
+    loop_s,
     time_boxed,
 )
 from wgs.errors import InputError
@@ -35,7 +36,7 @@ from wgs.estimate import (
     stage_seconds,
 )
 from wgs.scene.prepare import downscale_for
-from wgs.stages.coarse.settings import pilots_s
+from wgs.stages.coarse.settings import model_config, model_start, pilot_iterations, pilots_s
 from wgs.stages.fine.settings import expected_end
 
 # about this 2-core CPU's figures (a calibration made here)
@@ -110,6 +111,28 @@ def test_the_held_out_rule_is_modelled_as_its_margin_times_the_expected_plateau_
     assert expected_end(dataclasses.replace(fine, stop="iterations"), cfg) is None
     assert expected_end(dataclasses.replace(fine, max_seconds=60.0), cfg) is None  # the budget decides
     assert expected_end(fine, dataclasses.replace(cfg, stop="iterations")) is None
+
+
+def test_members_that_carry_on_from_the_pilots_are_modelled_from_where_the_pilots_end():
+    """A margin of 1.5 puts the expected stop (938) before the last iteration: the members carry on
+    from the pilots. The usual capture's expected stop trains all the iterations: none does."""
+    early = {"stop_margin": 1.5}
+    cfg, facts = configs(coarse=early)["coarse"], SceneFacts(128, 128, 4, 8)
+    n = pilot_iterations(cfg)
+    assert 0 < n < expected_iterations(cfg) < cfg.iterations
+    # G_c trains from the start; a member per pilot (4) from where it ended; the sixth model from the start
+    assert [model_start(cfg, facts, i) for i in range(cfg.ensemble)] == [0, n, n, n, n, 0]
+    assert model_start(cfg, SceneFacts(128, 128, 3, 8), 4) == 0  # 3 photos: 3 pilots
+    assert model_start(dataclasses.replace(cfg, members_from_pilots="never"), facts, 1) == 0
+    assert model_start(dataclasses.replace(cfg, stop="iterations"), facts, 1) == 0  # no pilots
+    usual = configs()["coarse"]
+    assert [model_start(usual, facts, i) for i in range(usual.ensemble)] == [0] * usual.ensemble
+    assert model_start(dataclasses.replace(usual, members_from_pilots="always"), facts, 1) == pilot_iterations(usual)
+    member = model_config(cfg, 1)
+    assert loop_s(CAL, member, facts.pixels, start=n) < loop_s(CAL, member, facts.pixels)
+    assert loop_s(CAL, member, facts.pixels, start=10**6) == 0.0
+    apart = stage_seconds(CAL, configs(coarse={**early, "members_from_pilots": "never"}), facts)
+    assert stage_seconds(CAL, configs(coarse=early), facts)["coarse"] < apart["coarse"]
 
 
 def test_the_training_stages_grow_with_the_share_of_the_frame_the_object_covers():

@@ -278,12 +278,11 @@ def test_deferred_stop_second_ctrl_c_stops_at_once():
     assert signal.getsignal(signal.SIGINT) is before
 
 
-def test_a_finished_loop_resumes_to_its_result_without_moments(tmp_path):
-    """Killed after training, before the outputs were written: the final state holds the model only."""
+def one_view_and_splats():
+    """A 16 px photo and 40 Gaussians: a loop of a few iterations."""
     from conftest import ring_w2c
 
     from wgs.gaussians.splats import create_splats
-    from wgs.gaussians.trainer import TrainConfig, train_gaussians
     from wgs.scene.dataset import Frame
 
     f = Frame(
@@ -292,9 +291,16 @@ def test_a_finished_loop_resumes_to_its_result_without_moments(tmp_path):
         16,
         16,
         name="a.png",
-        image=torch.rand(16, 16, 3),
+        image=torch.rand(16, 16, 3, generator=torch.Generator().manual_seed(0)),
     )
-    sp = create_splats(torch.randn(40, 3) * 0.1, torch.rand(40, 3), torch.full((40,), 0.05), 0)
+    return f, create_splats(torch.randn(40, 3) * 0.1, torch.rand(40, 3), torch.full((40,), 0.05), 0)
+
+
+def test_a_finished_loop_resumes_to_its_result_without_moments(tmp_path):
+    """Killed after training, before the outputs were written: the final state holds the model only."""
+    from wgs.gaussians.trainer import TrainConfig, train_gaussians
+
+    f, sp = one_view_and_splats()
     cfg = TrainConfig(iterations=6, refine_start=100, floater_every=0, log_every=1)
     first = train_gaussians(
         sp,
@@ -318,3 +324,28 @@ def test_a_finished_loop_resumes_to_its_result_without_moments(tmp_path):
     )
     assert again.iterations == first.iterations == 6 and again.losses == first.losses
     assert all(torch.equal(again.splats[k], first.splats[k]) for k in first.splats)
+
+
+def test_a_loop_carries_on_from_a_kept_state_as_one_loop_would():
+    """A loop's state kept at its end with the moments (`keep_state`, as a coarse pilot's) and
+    carried on (`start`) on the same photo: the model of one loop over all the iterations; the
+    carried loop counts its own losses. Where the views differ (a pilot's member) only the views'
+    order starts over."""
+    import dataclasses
+
+    from wgs.gaussians.trainer import TrainConfig, train_gaussians
+
+    f, sp = one_view_and_splats()
+    cpu = torch.device("cpu")
+    cfg = TrainConfig(iterations=12, refine_start=100, floater_every=0, log_every=1)
+    torch.manual_seed(0)
+    whole = train_gaussians(sp, [f], cfg, cpu, extent=1.0, has_masks=False)
+    torch.manual_seed(0)
+    early = dataclasses.replace(cfg, end_iteration=5)
+    first = train_gaussians(sp, [f], early, cpu, extent=1.0, has_masks=False, keep_state=True)
+    assert first.state is not None and first.state["it"] == 5
+    assert float(first.state["optimizers"]["means"]["state"][0]["step"]) == 5  # the moments travel
+    fresh = {k: torch.zeros_like(v) for k, v in sp.items()}  # not used: the kept state's are
+    rest = train_gaussians(fresh, [f], cfg, cpu, extent=1.0, has_masks=False, start=first.state)
+    assert rest.iterations == 12 and len(rest.losses) == 7
+    assert all(torch.equal(rest.splats[k], whole.splats[k]) for k in whole.splats)

@@ -1,6 +1,7 @@
 """The held-out stopping rule: where a curve stops gaining (`gaussians.stopping`), and the coarse and fine
 stage stopping there, saying why, and keeping that stop across a resume."""
 
+import dataclasses
 import json
 import signal
 import subprocess
@@ -65,6 +66,36 @@ def test_a_pilot_ends_once_its_plateau_lies_past_where_the_run_keeps_every_itera
     assert not plateau_past([(0, 10.0), (500, 14.0), (525, 13.0), (550, 14.05)], 500, 0.1)  # peaked by 500
 
 
+def test_a_member_carries_on_from_its_pilot_only_where_the_models_stop_early(tmp_path):
+    """Member k + 1 carries on from pilot k's kept state where the models stop before their last
+    iteration (or always, as asked) and the pilot ended before that stop; G_c, a member without a
+    pilot, a pilot that ran to the stop or kept nothing, and a stop at the last iteration: from the start."""
+    from wgs.stages.coarse.run import member_start, pilot_state
+    from wgs.stages.coarse.settings import CoarseConfig
+    from wgs.workspace import StageRun
+
+    run, cfg = StageRun("coarse", tmp_path / "out"), CoarseConfig(iterations=1500, ensemble=6)
+    stop = {"stop_at": 1200, "pilot_iterations": {"a.png": 675, "b.png": 1200, "c.png": 600}}
+    for k in (0, 1):
+        pilot_state(run, cfg, k).write_bytes(b"")
+    assert [member_start(run, cfg, stop, i) for i in range(6)] == [
+        None,
+        pilot_state(run, cfg, 0),
+        None,
+        None,
+        None,
+        None,
+    ]
+    late = {**stop, "stop_at": 1500}  # the models train every iteration
+    assert member_start(run, cfg, late, 1) is None
+    assert member_start(run, dataclasses.replace(cfg, members_from_pilots="always"), late, 1) == pilot_state(
+        run, cfg, 0
+    )
+    never = dataclasses.replace(cfg, members_from_pilots="never")
+    assert pilot_state(run, never, 0) is None and member_start(run, never, stop, 1) is None
+    assert pilot_state(run, dataclasses.replace(cfg, ensemble=1), 0) is None  # no member to carry on
+
+
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     """The tiny scene and a workspace where `wgs prepare` ran on it once (every config below has
@@ -79,12 +110,12 @@ def tiny(tmp_path_factory):
     return scene, base
 
 
-def coarse_cfg(base, name: str, extra: str):
+def coarse_cfg(base, name: str, extra: str, ensemble: int = 1):
     cfg = TINY_HELD_OUT.replace(
         "[coarse]\niterations = 30\nrefine_start = 10\nrefine_every = 10",
         "[coarse]\niterations = 120\nrefine_start = 20\nrefine_every = 20\nstop_every = 10\nstop_patience = 40\n"
         + extra,
-    ).replace("ensemble = 2", "ensemble = 1")
+    ).replace("ensemble = 2", f"ensemble = {ensemble}")
     assert cfg != TINY_HELD_OUT
     path = base / name
     path.write_text(cfg)
@@ -104,10 +135,13 @@ def prepared_and_coarse(ws, cfg, scene) -> tuple[str, dict, list[str]]:
 def test_coarse_and_fine_stop_where_the_pilots_stopped_gaining_say_why_and_resume_to_the_same_models(tiny, tmp_path):
     """A tolerance no score misses: the pilots' plateau is iteration 0, so the coarse models stop at
     stop_min_iterations (50 of 120), and G_f, which follows them (the coarse stage's margin times
-    their plateau, of its own iterations), at 50 of its 120. Each stage killed in its loop resumes
-    to the uninterrupted run's model; `--stop iterations` trains all of G_f's iterations."""
+    their plateau, of its own iterations), at 50 of its 120. Each pilot ends at 40, its patience;
+    the ensemble's second model carries on from the first pilot's state, given the photo that pilot
+    held out, for its last 10 iterations. Each stage killed in its loop (the coarse stage in that
+    member's) resumes to the uninterrupted run's models; `--stop iterations` trains all of G_f's
+    iterations."""
     scene, base = tiny
-    cfg = coarse_cfg(base, "stop.toml", "stop_tolerance_db = 100.0\nstop_min_iterations = 50\n")
+    cfg = coarse_cfg(base, "stop.toml", "stop_tolerance_db = 100.0\nstop_min_iterations = 50\n", ensemble=2)
     cfg.write_text(
         cfg.read_text().replace(
             "[fine]\niterations = 20\nrefine_start = 5\nrefine_every = 5",
@@ -123,7 +157,12 @@ def test_coarse_and_fine_stop_where_the_pilots_stopped_gaining_say_why_and_resum
     m = json.loads((ref / "1_coarse/manifest.json").read_text())
     assert m["iterations"] == 50 and m["stopping"]["stop_at"] == 50
     assert list(m["stopping"]["pilot_iterations"]) == json.loads((ref / "scene/scene.json").read_text())["train_names"]
-    assert all(40 <= n <= 120 for n in m["stopping"]["pilot_iterations"].values())  # each ran out its patience
+    assert set(m["stopping"]["pilot_iterations"].values()) == {40}  # each ran out its patience
+    assert "coarse: 1 ensemble member(s) carry on from the pilots" in said, said
+    photos = list(m["stopping"]["pilot_iterations"])
+    assert m["carried_members"] == {"2": photos[0]}
+    member = torch.load(ref / "1_coarse/members/ckpt_1.pt", weights_only=True)
+    assert member["step"] == 50
     assert "fine: stops at iteration 50 of 120, 3 x 0, where the coarse stage's pilots" in said, said
     m = json.loads((ref / "5_fine/manifest.json").read_text())
     assert m["iterations"] == 50 and m["stopping"] == {
@@ -135,9 +174,10 @@ def test_coarse_and_fine_stop_where_the_pilots_stopped_gaining_say_why_and_resum
     report = " ".join((ref / "6_eval/report.md").read_text().split())
     assert "fine stopped at iteration 50: 3 times the plateau of the coarse stage's pilots (iteration 0)" in report
 
-    # killed in G_c's loop, after the pilots saved where to stop: the resumed run stops there too
+    # killed in the member's loop, after the pilots saved where to stop and their states: the
+    # resumed run stops there too, with the same models
     ws = copy_workspace(base / "prepared", tmp_path / "ws")
-    killed = start_and_signal_when(wgs_cmd(ws, cfg, "coarse"), ws / ".resume/1_coarse/gc.pt", signal.SIGKILL)
+    killed = start_and_signal_when(wgs_cmd(ws, cfg, "coarse"), ws / ".resume/1_coarse/gc1.pt", signal.SIGKILL)
     killed.communicate(timeout=120)
     assert (ws / ".resume/1_coarse/stop.pt").is_file()
     res = subprocess.run(wgs_cmd(ws, cfg, "coarse", resume=True, quiet=False), capture_output=True, text=True)
@@ -145,6 +185,8 @@ def test_coarse_and_fine_stop_where_the_pilots_stopped_gaining_say_why_and_resum
     assert "the pilots ran before the interruption: their stop is kept" in " ".join(res.stderr.split())
     assert "stops at iteration 50 of 120" in " ".join(res.stderr.split())
     assert_same_model(ws, ref, "1_coarse")
+    again = torch.load(ws / "1_coarse/members/ckpt_1.pt", weights_only=True)
+    assert all(torch.equal(again["splats"][k], member["splats"][k]) for k in member["splats"])
 
     # killed in G_f's loop: the resumed stage stops at the same iteration with the same model
     ws = copy_workspace(ref, tmp_path / "ws_fine", ("scene", "1_coarse", "2_mask_data", "3_finetune", "4_repair"))

@@ -127,12 +127,15 @@ def cover_factor(facts: SceneFacts) -> float:
     return max(MIN_SHARE_FACTOR, 1.0 + MASK_SHARE_SLOPE * (facts.mask_share - FIT_MASK_SHARE))
 
 
-def loop_s(cal: Calibration, cfg: TrainConfig, pixels: float, renders: float = 1.0) -> float:
-    """One training loop's modelled seconds: its expected iterations, those in the first
-    `half_size_until` of the schedule at half size."""
+def loop_s(cal: Calibration, cfg: TrainConfig, pixels: float, renders: float = 1.0, start: int = 0) -> float:
+    """One training loop's modelled seconds: its expected iterations after `start` (where it carries
+    on from another loop's state), those in the first `half_size_until` of the schedule at half size."""
     ends = expected_iterations(cfg)
-    half = min(ends, cfg.half_size_until * cfg.iterations)
-    return (half * cal.view_s(pixels / 4) + (ends - half) * cal.view_s(pixels)) * renders
+    start = min(start, ends)
+    half_ends = min(ends, cfg.half_size_until * cfg.iterations)
+    half = max(half_ends - start, 0)
+    full = ends - max(half_ends, start)
+    return (half * cal.view_s(pixels / 4) + full * cal.view_s(pixels)) * renders
 
 
 def side_by_side_share(workers: int) -> float:

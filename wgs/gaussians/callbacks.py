@@ -131,8 +131,9 @@ class LoopState:
     sched: int = 0
     finished: bool = False
 
-    def snapshot(self) -> dict[str, Any]:
-        """The state on the CPU; a finished loop's without the moments (the size of the model)."""
+    def snapshot(self, moments: bool = False) -> dict[str, Any]:
+        """The state on the CPU; a finished loop's without the moments (the size of the model)
+        unless `moments`."""
         out = {
             "params": {k: v.detach().cpu() for k, v in self.params.items()},
             "generator": self.generator.get_state(),
@@ -148,7 +149,7 @@ class LoopState:
         }
         if self.cameras is not None:
             out["cameras"] = self.cameras.state_dict()
-        if not self.finished:
+        if moments or not self.finished:
             out["optimizers"] = {k: o.state_dict() for k, o in self.optimizers.items()}
             out["strategy"] = {k: (None if v is None else v.cpu()) for k, v in self.strategy.items()}
         return out

@@ -17,6 +17,7 @@ import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import torch
 from torch.profiler import record_function
@@ -104,6 +105,9 @@ class TrainResult:
     losses: list[float] = field(default_factory=list)
     curve: list[dict[str, float]] = field(default_factory=list)  # probe points: seconds, iteration, metrics
     probe_seconds: float = 0.0
+    # the loop's state at its end with the Adam moments (`LoopState.snapshot`), where asked for
+    # (`keep_state`): another loop can carry on from it (`train_gaussians(start=...)`)
+    state: dict[str, Any] | None = None
 
 
 class TrainingViews:
@@ -174,6 +178,8 @@ def train_gaussians(
     checkpoint: Checkpointer | None = None,
     probe: Probe | None = None,
     cameras: CameraCorrections | None = None,
+    start: dict[str, Any] | None = None,
+    keep_state: bool = False,
 ) -> TrainResult:
     """Optimise `splats` (raw, normalised world) on `frames` (with images). Returns the new splats.
 
@@ -183,6 +189,10 @@ def train_gaussians(
     checkpoint: saves the full state periodically, at the end and on Ctrl-C; continues from it on --resume.
     probe: measured at the start, every `probe.every_s` training seconds and at the end (TrainResult.curve).
     cameras: corrections of the frames' cameras, trained with the model (`pose_refine`).
+    start: another loop's state (`TrainResult.state`) to carry on from, on these frames: its
+    parameters, moments, densification state, generators and schedule position (a checkpoint to
+    resume from comes first); `splats` is then not used.
+    keep_state: TrainResult.state holds the state at the end.
     """
     params = {k: v.detach().to(device).clone().requires_grad_(True) for k, v in splats.items()}
     strategy = strategy_from(cfg, extent)
@@ -206,6 +216,8 @@ def train_gaussians(
     decay = (cfg.lr_means_final / cfg.lr_means) ** (1.0 / max(cfg.iterations, 1))
     time_box = TimeBox(cfg.iterations, cfg.max_seconds)
     saved = checkpoint.load() if checkpoint is not None else None
+    if saved is None and start is not None:
+        saved = carried_over(start)
     if saved is not None:
         loop.restore(saved, device, lambda restored: make_optimizers(restored, cfg, extent))
     params, optimizers, state = loop.params, loop.optimizers, loop.strategy
@@ -304,7 +316,14 @@ def train_gaussians(
             if loop.finished:
                 break
     out = {k: v.detach() for k, v in params.items()}
-    return TrainResult(out, it, clock.seconds(), losses, loop.probes.curve, loop.probes.seconds)
+    kept = loop.snapshot(moments=True) if keep_state else None
+    return TrainResult(out, it, clock.seconds(), losses, loop.probes.curve, loop.probes.seconds, kept)
+
+
+def carried_over(state: dict[str, Any]) -> dict[str, Any]:
+    """Another loop's state as a new loop starts from it: its parameters, moments, densification
+    state, generators and iteration; its own views' order, losses, clock and probe points left behind."""
+    return {**state, "order": [], "losses": [], "elapsed": 0.0, "curve": [], "probe_s": 0.0, "finished": False}
 
 
 def pseudo_loss(

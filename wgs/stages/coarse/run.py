@@ -1,12 +1,13 @@
 """Stage 1: coarse 3DGS `G_c` on the sparse training views, its renders and their Haar subbands;
-with `ensemble` > 1 also that many - 1 more coarse models from other seeds (`members/`), whose
-repaired renders the repair stage averages with G_c's."""
+with `ensemble` > 1 also that many - 1 more coarse models from other seeds or carried on from the
+held-out rule's pilots (`members/`), whose repaired renders the repair stage averages with G_c's."""
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
 import math
+from pathlib import Path
 
 import torch
 
@@ -25,6 +26,7 @@ from ...gaussians.stopping import (
 )
 from ...gaussians.trainer import TrainResult, render_frame, train_gaussians
 from ...io import atomic_write_json
+from ...io.checkpoint import read_checkpoint, write_checkpoint
 from ...io.exr import write_subbands
 from ...io.images import write_png
 from ...metrics import psnr
@@ -59,10 +61,18 @@ def run_coarse(ws: Workspace, cfg: CoarseConfig, env: StageEnv, force: bool = Fa
 
 
 def train_model(
-    ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: int, desc: str, checkpoint: Checkpointer, probe: bool
+    ws: Workspace,
+    cfg: CoarseConfig,
+    device: torch.device,
+    seed: int,
+    desc: str,
+    checkpoint: Checkpointer,
+    probe: bool,
+    pilot: Path | None = None,
 ) -> tuple[TrainResult, list[str]]:
-    """One coarse model from `seed` (with the test probe: G_c); its result and the probe's views.
-    Module level so that a spawned process can run it."""
+    """One coarse model from `seed` (with the test probe: G_c), or carried on from a pilot's state
+    saved at `pilot` with every photo; its result and the probe's views. Module level so that a
+    spawned process can run it."""
     scene = load_prepared(ws.output("prepare", "prepared"))
     torch.manual_seed(seed)
     test, names = test_probe(ws, scene, cfg, background_for(scene), device) if probe else (None, [])
@@ -77,19 +87,27 @@ def train_model(
         has_masks=scene.has_masks,
         checkpoint=checkpoint,
         probe=test,
+        start=read_checkpoint(pilot) if pilot is not None else None,
     )
     return res, names
 
 
 def train_pilot(
-    ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: int, held_out: str, end_when_past: bool = True
+    ws: Workspace,
+    cfg: CoarseConfig,
+    device: torch.device,
+    seed: int,
+    held_out: str,
+    end_when_past: bool = True,
+    keep: Path | None = None,
 ) -> Curve:
     """One pilot of the stopping rule: the coarse model at half size without the photo `held_out`
     (its visual hull from the other photos' masks), its PSNR at that photo every `cfg.stop_every`
     iterations until it stops gaining, until it shows that its plateau lies past the point where
     every plateau leaves the run all its iterations (`plateau_past`; not with `end_when_past`
-    False, to compare whole curves), or until `pilot_cap` (`gaussians.stopping`). Module level so
-    that a spawned process can run it."""
+    False, to compare whole curves), or until `pilot_cap` (`gaussians.stopping`); its state at the
+    end saved at `keep` (an ensemble member carries on from it). Module level so that a spawned
+    process can run it."""
     scene = load_prepared(ws.output("prepare", "prepared"))
     fold = dataclasses.replace(scene, train=[f for f in scene.train if f.name != held_out])
     bg = background_for(scene)
@@ -120,7 +138,10 @@ def train_pilot(
         seed=seed,
         has_masks=scene.has_masks,
         probe=probe,
+        keep_state=keep is not None,
     )
+    if keep is not None and res.state is not None:
+        write_checkpoint(keep, res.state)
     return [(int(p["iteration"]), p["psnr"]) for p in res.curve]
 
 
@@ -146,7 +167,7 @@ def held_out_stop(
         return found
     pixels = scene.train[0].width * scene.train[0].height // 4
     workers = side_by_side(len(photos), cfg.iterations, pixels, device.type == "cpu")
-    jobs = [(ws, cfg, device, seed, name) for name in photos]
+    jobs = [(ws, cfg, device, seed, name, True, pilot_state(run, cfg, i)) for i, name in enumerate(photos)]
     curves: dict[str, Curve] = {}
     with progress_bar("coarse pilots", len(jobs)) as bar:
         for i, curve in map_in_processes(train_pilot, jobs, workers):
@@ -165,6 +186,26 @@ def held_out_stop(
     }
     saved.save(record)
     return record
+
+
+def pilot_state(run: StageRun, cfg: CoarseConfig, index: int) -> Path | None:
+    """Where pilot `index` keeps its state at its end, for ensemble member `index + 1` to carry on
+    from (`members_from_pilots`; in the stage's resume folder, gone when the stage ends)."""
+    keep = cfg.members_from_pilots != "never" and index + 1 < cfg.ensemble
+    return run.checkpointer(f"pilot{index}").path if keep else None
+
+
+def member_start(run: StageRun, cfg: CoarseConfig, stop: dict | None, index: int) -> Path | None:
+    """The pilot state ensemble model `index` carries on from: pilot `index - 1`'s, where
+    `members_from_pilots` says so ("early": the models stop before their last iteration), the pilot
+    kept one and ended before the models' stop; None for G_c and the models that train from the start."""
+    if index == 0 or stop is None or (cfg.members_from_pilots == "early" and stop["stop_at"] >= cfg.iterations):
+        return None
+    ends = list(stop["pilot_iterations"].values())
+    path = pilot_state(run, cfg, index - 1) if index - 1 < len(ends) else None
+    if path is None or ends[index - 1] >= stop["stop_at"] or not path.is_file():
+        return None
+    return path
 
 
 def train_coarse(run: StageRun, ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: int) -> str:
@@ -195,9 +236,17 @@ def train_coarse(run: StageRun, ws: Workspace, cfg: CoarseConfig, device: torch.
             "coarse" if i == 0 else f"coarse member {i + 1}/{cfg.ensemble}",
             run.checkpointer("gc" if i == 0 else f"gc{i}"),
             i == 0,
+            member_start(run, cfg, stop, i),
         )
         for i in range(cfg.ensemble)
     ]
+    pilots = list(stop["pilot_iterations"]) if stop is not None else []
+    carried = {i + 1: pilots[i - 1] for i, job in enumerate(jobs) if job[-1] is not None}  # member number: photo
+    if carried:
+        log(
+            f"coarse: {len(carried)} ensemble member(s) carry on from the pilots, each from where its pilot ended, "
+            "given the photo it held out"
+        )
     results: dict[int, TrainResult] = {}
     probe_names: list[str] = []
     with progress_bar("coarse models", cfg.ensemble) if workers > 1 else contextlib.nullcontext() as bar:
@@ -232,6 +281,7 @@ def train_coarse(run: StageRun, ws: Workspace, cfg: CoarseConfig, device: torch.
             "member_seconds": member_s,
             "side_by_side": workers,
             "stopping": stop,
+            "carried_members": carried,
         }
     )
     return (

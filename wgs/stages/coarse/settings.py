@@ -15,6 +15,7 @@ from ...cost import (
     SceneFacts,
     StageCost,
     cover_factor,
+    expected_iterations,
     loop_s,
     side_by_side_share,
 )
@@ -24,6 +25,7 @@ from ...gaussians.trainer import TrainConfig
 from ...threads import side_by_side
 from ..stage import FAST_TRAINING, MODEL_OUTPUTS, CurveConfig, Stage, StageEnv
 
+MEMBERS_FROM_PILOTS = ("early", "always", "never")  # `members_from_pilots`'s choices
 FACTOR = 1.0  # time / modelled work on whole runs (lego at 200 px, ethiopianHead at 307 px; docs/speed.md)
 
 
@@ -42,6 +44,11 @@ class CoarseConfig(CurveConfig, StopParams, TrainConfig):
     # the share of the schedule at half size for the ensemble's other models (not G_c): the repair
     # averages their renders, and their later iterations at full size cost most (docs/speed.md)
     member_half_size_until: float = option(0.6, bounds=(0.0, 1.0))
+    # which of the ensemble's other models carry on from the held-out rule's pilots, one each, from
+    # where the pilot ended, given back the photo it held out. early: where the rule stops the models
+    # before their last iteration (members that fit the photos less, where fitting them more loses);
+    # always; never (docs/speed.md)
+    members_from_pilots: str = option("early", choices=MEMBERS_FROM_PILOTS)
 
 
 def model_config(cfg: CoarseConfig, index: int) -> CoarseConfig:
@@ -55,38 +62,55 @@ def run(ws: Any, cfg: CoarseConfig, env: StageEnv, force: bool) -> bool:
     return run_coarse(ws, cfg, env, force)
 
 
-def pilots_s(cal: Calibration, cfg: CoarseConfig, facts: SceneFacts, workers: int) -> float:
-    """The held-out rule's pilots: one per photo (at most `stop_pilots`) at half size, each until
-    `stop_patience` past the expected plateau, or, where that plateau leaves the run all its
-    iterations, until the expected plateau (by then a pilot has shown it, `plateau_past`); at most
-    `pilot_cap`; 0 where the rule is off."""
+def pilot_iterations(cfg: CoarseConfig) -> int:
+    """A pilot's expected length: `stop_patience` past the expected plateau, or, where that plateau
+    leaves the run all its iterations, the expected plateau (by then a pilot has shown it,
+    `plateau_past`); at most `pilot_cap`; 0 where the held-out rule is off."""
     if cfg.stop != "held-out" or cfg.max_seconds:
-        return 0.0
+        return 0
     late = EXPECTED_PLATEAU > cfg.iterations / cfg.stop_margin
-    length = min(
+    return min(
         pilot_cap(cfg.iterations, cfg.stop_margin, cfg.stop_patience),
         EXPECTED_PLATEAU + (0 if late else cfg.stop_patience),
     )
+
+
+def pilots_s(cal: Calibration, cfg: CoarseConfig, facts: SceneFacts, workers: int) -> float:
+    """The held-out rule's pilots: one per photo (at most `stop_pilots`) at half size, each
+    `pilot_iterations` long."""
     return (
         math.ceil(min(facts.n_train, cfg.stop_pilots) / workers)
-        * length
+        * pilot_iterations(cfg)
         * cal.view_s(facts.pixels / 4)
         * side_by_side_share(workers)
     )
 
 
+def model_start(cfg: CoarseConfig, facts: SceneFacts, index: int) -> int:
+    """The iteration the ensemble's model `index` starts from: where its pilot ended, for the
+    members that carry on from one (`members_from_pilots`; "early": where the models are expected
+    to stop before their last iteration), else 0."""
+    when = cfg.members_from_pilots
+    chosen = when == "always" or (when == "early" and expected_iterations(cfg) < cfg.iterations)
+    carried = chosen and 1 <= index <= min(facts.n_train, cfg.stop_pilots)
+    return pilot_iterations(cfg) if carried else 0
+
+
 def cost(cal: Calibration, cfgs: Mapping[str, Any], facts: SceneFacts, before: Mapping[str, float]) -> StageCost:
-    """The ensemble's models, side by side where that pays, after the held-out rule's pilots."""
+    """The ensemble's models, side by side where that pays, after the held-out rule's pilots; the
+    members that carry on from a pilot train from where it ended."""
     cfg: CoarseConfig = cfgs["coarse"]
     on_cpu = cal.device.split(":")[0] == "cpu"
     workers = side_by_side(cfg.ensemble, cfg.iterations, facts.pixels, on_cpu)
     pilots = side_by_side(min(facts.n_train, cfg.stop_pilots), cfg.iterations, facts.pixels // 4, on_cpu)
     factor = FACTOR * cover_factor(facts)
+    models = [
+        loop_s(cal, model_config(cfg, i), facts.pixels, start=model_start(cfg, facts, i)) for i in range(cfg.ensemble)
+    ]
     return StageCost(
         fixed_steps=25,
         loops=math.ceil(cfg.ensemble / workers),
-        loop_s=statistics.fmean(loop_s(cal, model_config(cfg, i), facts.pixels) for i in range(cfg.ensemble))
-        * side_by_side_share(workers),
+        loop_s=statistics.fmean(models) * side_by_side_share(workers),
         factor=factor,
         other_s=factor * pilots_s(cal, cfg, facts, pilots),
     )
