@@ -18,6 +18,7 @@ from wgs.cost import (
     Calibration,
     SceneFacts,
     cover_factor,
+    expected_follow_end,
     expected_iterations,
     loop_s,
     time_boxed,
@@ -37,7 +38,6 @@ from wgs.estimate import (
 )
 from wgs.scene.prepare import downscale_for
 from wgs.stages.coarse.settings import model_config, model_start, pilot_iterations, pilots_s
-from wgs.stages.fine.settings import expected_end
 
 # about this 2-core CPU's figures (a calibration made here)
 CAL = Calibration(
@@ -107,10 +107,16 @@ def test_the_held_out_rule_is_modelled_as_its_margin_times_the_expected_plateau_
     assert 0.5 < longer["coarse"] / stage_seconds(CAL, configs(coarse=early), facts)["coarse"] < 1
     # G_f stops at the coarse stage's margin times the expected plateau, of its own iterations
     fine = configs()["fine"]
-    assert expected_end(fine, cfg) == min(fine.iterations, round(cfg.stop_margin * EXPECTED_PLATEAU))
-    assert expected_end(dataclasses.replace(fine, stop="iterations"), cfg) is None
-    assert expected_end(dataclasses.replace(fine, max_seconds=60.0), cfg) is None  # the budget decides
-    assert expected_end(fine, dataclasses.replace(cfg, stop="iterations")) is None
+    assert expected_follow_end(fine, cfg) == min(fine.iterations, round(cfg.stop_margin * EXPECTED_PLATEAU))
+    assert expected_follow_end(dataclasses.replace(fine, stop="iterations"), cfg) is None
+    assert expected_follow_end(dataclasses.replace(fine, max_seconds=60.0), cfg) is None  # the budget decides
+    assert expected_follow_end(fine, dataclasses.replace(cfg, stop="iterations")) is None
+    # once the pilots ran, their plateau (100: a stop at 300) in place of the expected one
+    found = dataclasses.replace(facts, plateau=100)
+    assert expected_follow_end(configs()["fine"], cfg, found.plateau) == 300
+    after, usual = stage_seconds(CAL, configs(), found), stage_seconds(CAL, configs(), facts)
+    assert after["fine"] < 0.5 * usual["fine"]
+    assert all(after[t] == usual[t] for t in ("mask_data", "finetune", "repair", "eval"))
 
 
 def test_members_that_carry_on_from_the_pilots_are_modelled_from_where_the_pilots_end():

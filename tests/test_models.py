@@ -12,6 +12,7 @@ from wgs.models.sampling import sdedit_repair
 from wgs.models.scheduler import DDIMScheduler
 from wgs.models.storage import load_model, save_model
 from wgs.stages.finetune.settings import FinetuneConfig
+from wgs.training.loop import FitPlan
 from wgs.training.per_object import train_hf_unet, train_scratch_d
 from wgs.wavelet.haar import dwt2, idwt2
 
@@ -84,6 +85,30 @@ def test_u_early_stopping_stops_when_validation_rises():
     assert len(vals) - 1 - i_best == 3  # stopped after `patience` evaluations without improvement
     assert curve["best"] == min(vals) <= curve["identity"]
     assert not curve["beats_identity"]  # the held-out view needs no HF repair: U is left out
+
+
+def test_u_stops_where_its_held_out_gain_falls_below_u_min_gain():
+    """A correction U keeps learning: with every gain counted it trains all its steps; with
+    `u_min_gain` 0.3 a check beats the best only by lowering it 30 %, so U stops sooner, after
+    `u_patience` checks that did not, and keeps the last state that did."""
+    g = torch.Generator().manual_seed(0)
+    renders = torch.rand(4, 3, 32, 32, generator=g) * 2 - 1
+    ll, [h] = dwt2(renders, 1)
+    refs = idwt2(ll, [tuple(0.5 * b for b in h)])
+
+    def fit(min_gain: float) -> dict:
+        cfg = FinetuneConfig(
+            u_channels=8, u_max_steps=200, u_batch=4, u_crop=8, u_lr=5e-3, u_eval_every=20, u_patience=2,
+            u_min_gain=min_gain,
+        )  # fmt: skip
+        return train_hf_unet(cfg, renders, refs, torch.device("cpu"), torch.Generator().manual_seed(0))[1]
+
+    every, coarse = fit(0.0), fit(0.3)
+    assert every["stopped_at"] == 200 and coarse["stopped_at"] < 200
+    assert all(v >= 0.7 * coarse["best"] for v in coarse["val"][-2:])  # the last 2 checks did not count
+    assert coarse["best"] >= min(coarse["val"])  # a smaller score that did not count is not kept
+    assert FitPlan(10, 1e-3, 5, min_delta=1e-7, min_gain=0.02).margin(0.01) == pytest.approx(1e-7 + 2e-4)
+    assert FitPlan(10, 1e-3, 5, min_gain=0.02).margin(math.inf) == FitPlan(10, 1e-3, 5).min_delta  # no bar yet
 
 
 def test_u_that_learns_a_consistent_correction_beats_identity():

@@ -139,7 +139,8 @@ def test_coarse_and_fine_stop_where_the_pilots_stopped_gaining_say_why_and_resum
     the ensemble's second model carries on from the first pilot's state, given the photo that pilot
     held out, for its last 10 iterations. Each stage killed in its loop (the coarse stage in that
     member's) resumes to the uninterrupted run's models; `--stop iterations` trains all of G_f's
-    iterations."""
+    iterations. After the coarse stage the estimate of the rest takes the pilots' plateau in place
+    of the expected one: G_f is modelled at 50 iterations, G_d (all its iterations) as before."""
     scene, base = tiny
     cfg = coarse_cfg(base, "stop.toml", "stop_tolerance_db = 100.0\nstop_min_iterations = 50\n", ensemble=2)
     cfg.write_text(
@@ -171,7 +172,15 @@ def test_coarse_and_fine_stop_where_the_pilots_stopped_gaining_say_why_and_resum
         "margin": 3.0,
         "stop_at": 50,
     }
+    # the estimate of the rest after the coarse stage: G_f at 50 of its 120 iterations, not all
+    assert "estimate of the rest, the coarse pilots' plateau at 0 (expected 625): about" in said, said
+    record = json.loads((ref / "run.json").read_text())
+    before, after = record["estimate"], record["estimate_after_coarse"]
+    assert list(after) == [t for t in before if t != "coarse"]
+    assert after["fine"] < before["fine"]
+    assert all(after[t] == before[t] for t in ("mask_data", "finetune", "repair", "eval"))
     report = " ".join((ref / "6_eval/report.md").read_text().split())
+    assert "mask_data, finetune, repair, fine were estimated at" in report, report
     assert "fine stopped at iteration 50: 3 times the plateau of the coarse stage's pilots (iteration 0)" in report
 
     # killed in the member's loop, after the pilots saved where to stop and their states: the

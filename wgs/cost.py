@@ -73,6 +73,7 @@ class SceneFacts:
     has_masks: bool = True
     posed_by_wgs: bool = False  # photos posed by prepare: eval localises the test cameras
     mask_share: float = FIT_MASK_SHARE  # the share of a training photo inside its mask (prepare's record)
+    plateau: int | None = None  # the coarse pilots' plateau once they ran (before: EXPECTED_PLATEAU)
 
     @property
     def pixels(self) -> int:
@@ -118,6 +119,18 @@ def expected_iterations(cfg: TrainConfig) -> int:
     if not isinstance(cfg, StopParams) or cfg.stop != "held-out" or cfg.max_seconds:
         return cfg.iterations
     return stop_iteration(EXPECTED_PLATEAU, cfg.stop_margin, cfg.stop_min_iterations, cfg.iterations)
+
+
+def expected_follow_end(cfg: TrainConfig, coarse: TrainConfig, plateau: int | None = None) -> int | None:
+    """Where a stage that follows the coarse stage's stop (G_f: `StopRule` without pilots of its
+    own) is expected to end: the coarse pilots' `plateau` (before they ran, the expected one) times
+    their margin, of the stage's own iterations; None where it trains them all."""
+    if getattr(cfg, "stop", None) != "held-out" or cfg.max_seconds or not isinstance(coarse, StopParams):
+        return None
+    if coarse.stop != "held-out" or coarse.max_seconds:
+        return None
+    found = EXPECTED_PLATEAU if plateau is None else plateau
+    return stop_iteration(found, coarse.stop_margin, coarse.stop_min_iterations, cfg.iterations)
 
 
 def cover_factor(facts: SceneFacts) -> float:

@@ -31,6 +31,7 @@ from .cost import (
     D_STEP_BATCH,
     D_STEP_CHANNELS,
     D_STEP_CROP,
+    EXPECTED_PLATEAU,
     FIT_MASK_SHARE,
     GPU_MAX_SIZE,
     Calibration,
@@ -295,6 +296,8 @@ class RunTiming:
         self.runs = UNASKED + asked
         self.started = time.perf_counter()
         self._cal: Calibration | None = None
+        self.facts: SceneFacts | None = None  # the scene's, once prepare ran
+        self.pending: tuple[str, ...] = ()  # the stages estimated after prepare
         self.key = f"budget {budget_s:g} s" if budget_s else f"machine ({device.type})"
 
     def calibration(self) -> Calibration:
@@ -371,6 +374,7 @@ class RunTiming:
                 + " (the training stages time-boxed)"
             )
         pending = tuple(t for t in runs if t != FIRST and not _fresh(ws, t, cfgs[t]))
+        self.facts, self.pending = facts, pending
         record: dict[str, Any] = {"budget_s": self.budget_s, "plan": plan}
         if pending:
             cal = self.calibration()
@@ -393,6 +397,22 @@ class RunTiming:
             record.update({k: held[k] for k in ("estimate", "calibration", "scene") if k in held})
         ws.write_run_record(record)
         return cfgs
+
+    def after_coarse(self, ws: Workspace, cfgs: dict[str, Any]) -> None:
+        """Where the coarse stage's pilots found the scene's plateau (`gaussians.stopping`): print
+        the estimate of the stages still to run with that plateau in place of the expected one (G_f
+        stops at its margin times it) and record it (`estimate_after_coarse`). Nothing where
+        the pilots did not run, a budget set the stages' lengths, or no stage is left."""
+        stopping = (ws.manifest("coarse") or {}).get("stopping")
+        left = tuple(t for t in self.pending if t != "coarse")
+        if self.facts is None or not stopping or self.budget_s or not left:
+            return
+        plateau = stopping["plateau"]
+        facts = dataclasses.replace(self.facts, plateau=plateau)
+        estimate = per_stage(stage_seconds(self.calibration(), cfgs, facts), left)
+        what = f"estimate of the rest, the coarse pilots' plateau at {plateau} (expected {EXPECTED_PLATEAU})"
+        log(estimate_line(estimate, what))
+        ws.write_run_record({**ws.run_record(), "estimate_after_coarse": estimate})
 
 
 END_S = 3.0  # what a run takes after its last stage (the summary, the process's end)

@@ -4,12 +4,15 @@ for those run with a budget, the time against the budget and the quality it boug
 For each workspace: the estimate its run printed (`run.json`), the estimate the model in
 `wgs/estimate.py` gives now from the same calibration and the stages' recorded settings, and
 each stage's wall time (its manifest); with TIMES (lines `NAME rc=0 wall=SECONDS`, as a run
-queue writes them) also the whole command's wall time.
+queue writes them) also the whole command's wall time. And for the stages after the coarse one,
+the model's estimate with the plateau the coarse pilots found (`RunTiming.after_coarse`, which
+`wgs all` prints after the coarse stage) against the time they took.
 
     python xp_estimate.py [--times TIMES] WORKSPACE...
 """
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
 
@@ -51,11 +54,10 @@ def one(ws: Workspace, wall: float | None) -> dict:
     sc = run["scene"]
     cfgs = {t: recorded_config(ws, t) for t in TABLES}
     masks = sc.get("has_masks", (ws.manifest("prepare") or {}).get("summary", {}).get("has_masks", True))
-    now = stage_seconds(
-        cal,
-        cfgs,
-        SceneFacts(sc["width"], sc["height"], sc["train"], sc["test"], has_masks=masks, mask_share=share(ws)),
-    )
+    facts = SceneFacts(sc["width"], sc["height"], sc["train"], sc["test"], has_masks=masks, mask_share=share(ws))
+    now = stage_seconds(cal, cfgs, facts)
+    stopping = (ws.manifest("coarse") or {}).get("stopping")
+    found = stage_seconds(cal, cfgs, dataclasses.replace(facts, plateau=stopping["plateau"])) if stopping else None
     actual = {t: (ws.manifest(t) or {}).get("wall_time_s") for t in TABLES}
     printed = run.get("estimate") or {}
     shown = [t for t in TABLES if t != "prepare" and printed.get(t) is not None and actual[t] is not None]
@@ -78,7 +80,18 @@ def one(ws: Workspace, wall: float | None) -> dict:
             "printed_over_took": sum(printed[t] for t in rest) / took,
             "rescaled_over_took": ratio * sum(printed[t] for t in rest) / took,
         }
+    after_coarse = None
+    later = [t for t in shown if t != "coarse"] if "coarse" in shown else []
+    if found is not None and later:
+        took = sum(actual[t] for t in later)
+        after_coarse = {
+            "plateau": stopping["plateau"],
+            "stages": later,
+            "modelled": sum(found[t] for t in later),
+            "took": took,
+        }
     return {
+        "after_coarse": after_coarse,
         "after_first": after_first,
         "quality": quality,
         "workspace": ws.root.name,
@@ -135,6 +148,16 @@ def main() -> None:
     for r in rows:
         if (a := r["after_first"]) is not None:
             print(f"| {r['workspace']} | {a['stage']} | {a['printed_over_took']:.2f} | {a['rescaled_over_took']:.2f} |")
+    print(
+        "\n| workspace | pilots' plateau | the rest after coarse: with that plateau (s) | took (s) | ratio |"
+        "\n| --- | ---: | ---: | ---: | ---: |"
+    )
+    for r in rows:
+        if (c := r["after_coarse"]) is not None:
+            print(
+                f"| {r['workspace']} | {c['plateau']} | {c['modelled']:.0f} | {c['took']:.0f} | "
+                f"{c['modelled'] / c['took']:.2f} |"
+            )
     print()
     for r in rows:
         stages = r["stages"].items()

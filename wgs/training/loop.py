@@ -35,6 +35,11 @@ class FitPlan:
     patience: int | None = None  # stop after this many evaluations that do not beat the best
     keep_best: bool = False  # return the best evaluated state (else the last)
     min_delta: float = 1e-9  # an evaluation beats the best by more than this
+    min_gain: float = 0.0  # and by more than this share of the best (a gain too small to pay for more steps)
+
+    def margin(self, best: float) -> float:
+        """How much an evaluation must lower `best` to beat it."""
+        return self.min_delta + (self.min_gain * abs(best) if math.isfinite(best) else 0.0)
 
     def lr_at(self, step: int) -> float:
         if self.warmup is None:
@@ -176,9 +181,10 @@ def fit(
         st.step = step
         if step % plan.eval_every == 0 or step == plan.steps:
             record(st, judged, evaluate, step)
-            if st.curve["val"] and monitor is not None and monitor(st.curve["val"][-1]) < st.best - plan.min_delta:
-                st.best, st.bad_evals, best_state = monitor(st.curve["val"][-1]), 0, copy.deepcopy(judged.state_dict())
-            elif st.curve["val"] and monitor is not None:
+            judged_val = monitor(st.curve["val"][-1]) if st.curve["val"] and monitor is not None else None
+            if judged_val is not None and judged_val < st.best - plan.margin(st.best):
+                st.best, st.bad_evals, best_state = judged_val, 0, copy.deepcopy(judged.state_dict())
+            elif judged_val is not None:
                 st.bad_evals += 1
                 if plan.patience is not None and st.bad_evals >= plan.patience:
                     st.stopped_at = step

@@ -128,7 +128,14 @@ def train_hf_unet(
     lr = cfg.u_lr if init is None else cfg.u_lr * 0.1
     opt = torch.optim.Adam(model.parameters(), lr=lr)
     plan = FitPlan(
-        cfg.u_max_steps, lr, cfg.u_eval_every, max_norm=None, patience=cfg.u_patience, keep_best=True, min_delta=1e-7
+        cfg.u_max_steps,
+        lr,
+        cfg.u_eval_every,
+        max_norm=None,
+        patience=cfg.u_patience,
+        keep_best=True,
+        min_delta=1e-7,
+        min_gain=cfg.u_min_gain,
     )
 
     def batch() -> tuple[torch.Tensor, torch.Tensor]:

@@ -7,9 +7,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from ...cost import EXPECTED_PLATEAU, Calibration, SceneFacts, StageCost, cover_factor, loop_s
+from ...cost import Calibration, SceneFacts, StageCost, cover_factor, expected_follow_end, loop_s
 from ...fields import option
-from ...gaussians.stopping import StopParams, StopRule, stop_iteration
+from ...gaussians.stopping import StopRule
 from ...gaussians.trainer import TrainConfig
 from ..stage import FAST_TRAINING, MODEL_OUTPUTS, CurveConfig, LpipsWeightsConfig, Stage, StageEnv
 
@@ -41,16 +41,6 @@ class FineConfig(LpipsWeightsConfig, CurveConfig, StopRule, TrainConfig):
     rounds: int = option(1, "Rounds of repair + refinement: each later one repairs the refined model's renders again.")
 
 
-def expected_end(cfg: FineConfig, coarse: TrainConfig) -> int | None:
-    """Where G_f is expected to stop before the coarse pilots have run (the coarse models' expected
-    stop, `cost.expected_iterations`, of G_f's own iterations); None where it trains them all."""
-    if cfg.stop != "held-out" or cfg.max_seconds or not isinstance(coarse, StopParams):
-        return None
-    if coarse.stop != "held-out" or coarse.max_seconds:
-        return None
-    return stop_iteration(EXPECTED_PLATEAU, coarse.stop_margin, coarse.stop_min_iterations, cfg.iterations)
-
-
 def run(ws: Any, cfg: FineConfig, env: StageEnv, force: bool) -> bool:
     from .run import run_fine  # on first use: the stage loads the library
 
@@ -60,7 +50,7 @@ def run(ws: Any, cfg: FineConfig, env: StageEnv, force: bool) -> bool:
 def cost(cal: Calibration, cfgs: Mapping[str, Any], facts: SceneFacts, before: Mapping[str, float]) -> StageCost:
     """One loop per round, a pseudo view's step every `pseudo_every` iterations besides the photos'."""
     cfg: FineConfig = cfgs["fine"]
-    cfg = dataclasses.replace(cfg, end_iteration=expected_end(cfg, cfgs["coarse"]))
+    cfg = dataclasses.replace(cfg, end_iteration=expected_follow_end(cfg, cfgs["coarse"], facts.plateau))
     return StageCost(
         fixed_steps=10,
         loops=max(1, cfg.rounds),

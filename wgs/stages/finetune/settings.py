@@ -67,6 +67,10 @@ class FinetuneConfig:
     u_lr: float = 1e-3
     u_eval_every: int = 50
     u_patience: int = 5
+    # a held-out check beats U's best only by lowering its L1 by more than this share of it, so that
+    # U stops where it gains less per `u_patience` checks (0: every gain counts; 0.02 saves 26-45 s
+    # where U trains all its steps, at a cost in G_f on one of two captures: docs/what-we-tried.md)
+    u_min_gain: float = 0.0
     holdout: float = 0.15  # fraction of pairs kept out of training to measure D
     eval_strength: float = 0.5  # SDEdit strength of the held-out check
     eval_steps: int = 10
