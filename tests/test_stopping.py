@@ -175,7 +175,7 @@ def test_coarse_and_fine_stop_where_the_pilots_stopped_gaining_say_why_and_resum
     # the estimate of the rest after the coarse stage: G_f at 50 of its 120 iterations, not all
     assert "estimate of the rest, the coarse pilots' plateau at 0 (expected 625): about" in said, said
     record = json.loads((ref / "run.json").read_text())
-    before, after = record["estimate"], record["estimate_after_coarse"]
+    before, after = record["estimate"], record["estimate_after_pilots"]
     assert list(after) == [t for t in before if t != "coarse"]
     assert after["fine"] < before["fine"]
     assert all(after[t] == before[t] for t in ("mask_data", "finetune", "repair", "eval"))

@@ -398,21 +398,24 @@ class RunTiming:
         ws.write_run_record(record)
         return cfgs
 
-    def after_coarse(self, ws: Workspace, cfgs: dict[str, Any]) -> None:
-        """Where the coarse stage's pilots found the scene's plateau (`gaussians.stopping`): print
-        the estimate of the stages still to run with that plateau in place of the expected one (G_f
-        stops at its margin times it) and record it (`estimate_after_coarse`). Nothing where
-        the pilots did not run, a budget set the stages' lengths, or no stage is left."""
-        stopping = (ws.manifest("coarse") or {}).get("stopping")
-        left = tuple(t for t in self.pending if t != "coarse")
-        if self.facts is None or not stopping or self.budget_s or not left:
+    def after_stage(self, ws: Workspace, name: str, cfgs: dict[str, Any]) -> None:
+        """Where stage `name` ran the held-out rule's pilots and they found the scene's plateau
+        (`gaussians.stopping`; the coarse stage): print the estimate of the stages still to run
+        after it with that plateau in place of the expected one (G_f stops at its margin times it)
+        and record it (`estimate_after_pilots`). Nothing for another stage, where a budget set the
+        stages' lengths, or where no stage is left."""
+        stopping = (ws.manifest(name) or {}).get("stopping") or {}
+        if self.facts is None or "pilot_iterations" not in stopping or self.budget_s or name not in self.pending:
+            return
+        left = self.pending[self.pending.index(name) + 1 :]
+        if not left:
             return
         plateau = stopping["plateau"]
         facts = dataclasses.replace(self.facts, plateau=plateau)
         estimate = per_stage(stage_seconds(self.calibration(), cfgs, facts), left)
-        what = f"estimate of the rest, the coarse pilots' plateau at {plateau} (expected {EXPECTED_PLATEAU})"
+        what = f"estimate of the rest, the {name} pilots' plateau at {plateau} (expected {EXPECTED_PLATEAU})"
         log(estimate_line(estimate, what))
-        ws.write_run_record({**ws.run_record(), "estimate_after_coarse": estimate})
+        ws.write_run_record({**ws.run_record(), "estimate_after_pilots": estimate})
 
 
 END_S = 3.0  # what a run takes after its last stage (the summary, the process's end)

@@ -54,7 +54,7 @@ def run_all(
     config file), leaving out what the scene does not need and, of the stages that run only on
     request, those not in `asked`. After prepare it prints the estimate of what is left and, with
     `budget_s`, time-boxes the training stages so that the run ends within the budget; after the
-    coarse stage, the estimate of the rest with the plateau its pilots found."""
+    stage that runs the stopping rule's pilots, the estimate of the rest with the plateau they found."""
     from .estimate import RunTiming
     from .stages.registry import run_stage
 
@@ -81,8 +81,8 @@ def run_all(
                 log("left out: no masks -> no visual hull, no mask loss, no random background")
             runs = tuple(s.name for s in REGISTRY if left_out(s.name, info, force_repair, asked) is None)
             cfgs = timing.after_prepare(ws, info, runs)
-        elif stage.name == "coarse" and ran:
-            timing.after_coarse(ws, cfgs)
+        elif ran:
+            timing.after_stage(ws, stage.name, cfgs)
     return outcomes
 
 

@@ -5,7 +5,7 @@ For each workspace: the estimate its run printed (`run.json`), the estimate the 
 `wgs/estimate.py` gives now from the same calibration and the stages' recorded settings, and
 each stage's wall time (its manifest); with TIMES (lines `NAME rc=0 wall=SECONDS`, as a run
 queue writes them) also the whole command's wall time. And for the stages after the coarse one,
-the model's estimate with the plateau the coarse pilots found (`RunTiming.after_coarse`, which
+the model's estimate with the plateau the coarse pilots found (`RunTiming.after_stage`, which
 `wgs all` prints after the coarse stage) against the time they took.
 
     python xp_estimate.py [--times TIMES] WORKSPACE...

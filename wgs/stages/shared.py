@@ -72,12 +72,12 @@ def subbands_hwc(img: torch.Tensor) -> dict[str, np.ndarray]:
 
 def stage_times(ws) -> list[dict[str, Any]]:
     """Wall time, cumulative wall time, peak memory, the run's estimate (`Workspace.run_record`,
-    None where it made none) and its estimate after the coarse stage (`estimate_after_coarse`), and
+    None where it made none) and its estimate after the coarse stage's pilots (`estimate_after_pilots`), and
     the iterations and where the stopping rule ended them, of each method stage that ran, in order."""
     rows, cum = [], 0.0
     record = ws.run_record()
     estimate = record.get("estimate") or {}
-    after_coarse = record.get("estimate_after_coarse") or {}
+    after_pilots = record.get("estimate_after_pilots") or {}
     for st in METHOD:
         m = ws.manifest(st)
         if m is None:
@@ -90,7 +90,7 @@ def stage_times(ws) -> list[dict[str, Any]]:
                 "cumulative_s": round(cum, 2),
                 "peak_memory_mb": m.get("peak_memory_mb"),
                 "estimate_s": estimate.get(st),
-                "estimate_after_coarse_s": after_coarse.get(st),
+                "estimate_after_pilots_s": after_pilots.get(st),
                 "iterations": m.get("iterations"),
                 "stopping": m.get("stopping"),  # where the held-out rule stopped it (None: all its iterations)
             }

@@ -56,9 +56,9 @@ def write_report(
         "empty where the stage did not run in that `wgs all`.",
         "",
     ]
-    after = [r for r in times if r.get("estimate_after_coarse_s") is not None]
+    after = [r for r in times if r.get("estimate_after_pilots_s") is not None]
     if after:
-        modelled, took = sum(r["estimate_after_coarse_s"] for r in after), sum(r["wall_time_s"] for r in after)
+        modelled, took = sum(r["estimate_after_pilots_s"] for r in after), sum(r["wall_time_s"] for r in after)
         lines += [
             f"With the plateau the coarse stage's pilots found in place of the expected one, "
             f"{', '.join(r['stage'] for r in after)} were estimated at {modelled:.1f} s after the coarse "
