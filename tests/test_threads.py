@@ -182,3 +182,62 @@ def test_children_leave_when_their_parent_is_killed():
     while any(proc_stat(k) for k in kids) and time.monotonic() < deadline:
         time.sleep(0.2)
     assert not any(proc_stat(k) for k in kids), "the pool's children outlived their killed parent"
+
+
+DEFERRING_JOB = """
+import time
+from pathlib import Path
+
+from wgs.resume import deferred_stop, stop_requested
+
+
+def job(marker, seconds):
+    with deferred_stop():  # as a training loop: a stop signal ends it at the end of an iteration
+        Path(marker).touch()
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < seconds:
+            if stop_requested():
+                raise RuntimeError("stopped at the end of an iteration")
+            time.sleep(0.05)
+"""
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc"), reason="reads children from /proc")
+def test_sigterm_to_the_parent_ends_it_and_its_children_inside_their_loops(tmp_path):
+    """`kill PID` of a run whose models train side by side: the parent stops (`Stopped`) and its
+    pool's SIGTERM ends the children at once, though their loops defer stop signals; deferred, a
+    child ended its loop and then waited for work, and the parent waited for it."""
+    import signal
+    import time
+
+    (tmp_path / "deferring.py").write_text(DEFERRING_JOB)
+    marks = [tmp_path / "a", tmp_path / "b"]
+    parent = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            f"import sys; sys.path.insert(0, {str(tmp_path)!r})\n"
+            "import deferring, wgs.threads as t\n"
+            "from wgs.resume import install_stop_handlers\n"
+            "install_stop_handlers()\n"
+            f"dict(t.map_in_processes(deferring.job, [({str(marks[0])!r}, 60), ({str(marks[1])!r}, 60)], 2))",
+        ],
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    deadline = time.monotonic() + 60
+    while not all(m.exists() for m in marks) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert all(m.exists() for m in marks), "the children never started their loops"
+    kids = children_of(parent.pid)
+    parent.send_signal(signal.SIGTERM)
+    try:
+        parent.wait(timeout=30)
+    except subprocess.TimeoutExpired:
+        parent.kill()
+        raise AssertionError("the parent did not end within 30 s of SIGTERM") from None
+    assert parent.returncode != 0
+    deadline = time.monotonic() + 20
+    while any(proc_stat(k) for k in kids) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not any(proc_stat(k) for k in kids), "the pool's children outlived their stopped parent"

@@ -92,6 +92,7 @@ STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1, signal.SIGUSR2)
 _requested = threading.Event()
 _received: list[int] = []  # the first stop signal of the current loop
 _installed = False
+_pool_child = False  # a process of `threads.map_in_processes` (`as_pool_child`)
 
 
 def stop_requested() -> bool:
@@ -120,11 +121,20 @@ def restore_stop_handlers() -> None:
         install_stop_handlers()
 
 
+def as_pool_child() -> None:
+    """In a process of `threads.map_in_processes`: SIGTERM, by which its parent's pool stops it,
+    ends it at once, inside `deferred_stop` too. Deferred, it would end the loop and leave the
+    process waiting for work that never comes, and the parent's pool waiting for the process."""
+    global _pool_child
+    _pool_child = True
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
 @contextlib.contextmanager
 def deferred_stop() -> Iterator[None]:
     """Inside the block the first stop signal only sets a flag (see `stop_requested`); the second
     one stops at once (KeyboardInterrupt for SIGINT, `Stopped` for the others). Outside the main
-    thread this does nothing."""
+    thread this does nothing; in a pool's process SIGTERM is not deferred (`as_pool_child`)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -137,7 +147,8 @@ def deferred_stop() -> Iterator[None]:
         _received[:] = [signum]
         _requested.set()
 
-    previous = {sig: signal.signal(sig, handler) for sig in STOP_SIGNALS}
+    deferred = [sig for sig in STOP_SIGNALS if not (_pool_child and sig == signal.SIGTERM)]
+    previous = {sig: signal.signal(sig, handler) for sig in deferred}
     _requested.clear()
     try:
         yield

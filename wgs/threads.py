@@ -185,14 +185,17 @@ def side_by_side(models: int, iterations: int, pixels: int, on_cpu: bool) -> int
 
 
 def _child_start(parent: int, quiet: bool) -> None:
-    """A pool child: one thread, quiet if asked, and gone when its parent is (a SIGKILLed parent's
-    children would otherwise train on, stealing the cores from the rerun)."""
+    """A pool child: one thread, quiet if asked, stopped at once by the pool's SIGTERM
+    (`resume.as_pool_child`), and gone when its parent is (a SIGKILLed parent's children would
+    otherwise train on, stealing the cores from the rerun)."""
     import threading
 
     from .progress import set_quiet
+    from .resume import as_pool_child
 
     set_pools(1)
     set_quiet(quiet)
+    as_pool_child()
 
     def watch() -> None:
         while os.getppid() == parent:
