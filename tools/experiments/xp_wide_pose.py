@@ -175,6 +175,23 @@ def compare(folder: Path, truth: dict[str, np.ndarray], focal: float | None) -> 
     }
 
 
+def wide_scenes(tmp: Path, step: float, lego: Path) -> list[tuple[str, Path, dict[str, np.ndarray], float]]:
+    """4 photos about `step` degrees apart, written under `tmp`: the three generated objects and, where
+    `lego` holds NeRF-Synthetic lego, a lego chain. [(name, folder, {photo: true w2c}, true focal)]."""
+    scenes = []
+    for shape in (None, 1, 2):
+        folder = tmp / f"generated_{shape}_{step:g}"
+        cams = make_photos(folder, n=4, azimuths=[step * i for i in range(4)], shape_seed=shape)
+        focal = float(next(iter(cams.values()))[0][0, 0])
+        scenes.append((f"generated (shape {shape})", folder, {k: v[1] for k, v in cams.items()}, focal))
+    if (lego / "transforms_train.json").is_file():
+        folder = tmp / f"lego_{step:g}"
+        truth = lego_chain(lego, step, folder)
+        angle = json.loads((lego / "transforms_train.json").read_text())["camera_angle_x"]
+        scenes.append(("lego", folder, truth, 0.5 * 400 / np.tan(0.5 * angle)))
+    return scenes
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--steps", type=float, nargs="+", default=[45, 60])
@@ -185,18 +202,7 @@ def main() -> None:
     print("| --- | --- | --- | --- | --- | --- |")
     with tempfile.TemporaryDirectory() as tmp:
         for step in args.steps:
-            scenes = []
-            for shape in (None, 1, 2):
-                folder = Path(tmp) / f"generated_{shape}_{step:g}"
-                cams = make_photos(folder, n=4, azimuths=[step * i for i in range(4)], shape_seed=shape)
-                focal = float(next(iter(cams.values()))[0][0, 0])
-                scenes.append((f"generated (shape {shape})", folder, {k: v[1] for k, v in cams.items()}, focal))
-            if (args.lego / "transforms_train.json").is_file():
-                folder = Path(tmp) / f"lego_{step:g}"
-                truth = lego_chain(args.lego, step, folder)
-                angle = json.loads((args.lego / "transforms_train.json").read_text())["camera_angle_x"]
-                scenes.append(("lego", folder, truth, 0.5 * 400 / np.tan(0.5 * angle)))
-            for name, folder, truth, focal in scenes:
+            for name, folder, truth, focal in wide_scenes(Path(tmp), step, args.lego):
                 row = compare(folder, truth, focal if args.known_focal else None)
                 print(
                     f"| {name} | {spacing(truth)} | {row['pairs']} | {row['incremental']} | {row['global']} "
