@@ -140,7 +140,10 @@ def valley(Rt: np.ndarray, tt: np.ndarray, xi: np.ndarray, xj: np.ndarray, f: fl
     return best[1], best[0], robust(sampson_px(Rt, tt, xi, xj, f))
 
 
-def study(folder: Path, truth: dict[str, np.ndarray], f: float) -> list[str]:
+def verified_pairs(folder: Path) -> tuple[list[str], Path, tuple[int, int], dict[tuple[int, int], tuple]]:
+    """The photos of `folder` matched and verified as `sfm.pose_photos` does (learned matching):
+    (names, mask folder, (width, height), {(i, j): (pixels in i [M, 2], pixels in j [M, 2])}) for the
+    pairs with at least 2 x MIN_PAIR_INLIERS verified matches."""
     image_dir, names, mask_dir = sfm.find_photos(folder)
     (folder / "work").mkdir()
     db = folder / "work" / "database.db"
@@ -148,7 +151,21 @@ def study(folder: Path, truth: dict[str, np.ndarray], f: float) -> list[str]:
     reader.camera_model = "SIMPLE_PINHOLE"
     with sfm._colmap_quiet():
         sfm._learned_database(db, image_dir, names, mask_dir, reader, pycolmap.CameraMode.SINGLE)
-    w, h = image_size(image_dir / names[0])
+    database = pycolmap.Database.open(db)
+    ims = {im.name: im for im in database.read_all_images()}
+    kp = {n: database.read_keypoints(ims[n].image_id)[:, :2].astype(np.float64) for n in names}
+    pairs = {}
+    for i, j in itertools.combinations(range(len(names)), 2):
+        m = database.read_two_view_geometry(ims[names[i]].image_id, ims[names[j]].image_id).inlier_matches
+        if len(m) >= 2 * sfm.MIN_PAIR_INLIERS:
+            pairs[(i, j)] = (kp[names[i]][m[:, 0]], kp[names[j]][m[:, 1]])
+    database.close()
+    assert mask_dir is not None
+    return names, mask_dir, image_size(image_dir / names[0]), pairs
+
+
+def study(folder: Path, truth: dict[str, np.ndarray], f: float) -> list[str]:
+    names, mask_dir, (w, h), pairs = verified_pairs(folder)
     K = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1.0]])
     cam = pycolmap.Camera(model="SIMPLE_PINHOLE", width=w, height=h, params=[f, w / 2, h / 2])
     t = []
@@ -158,17 +175,10 @@ def study(folder: Path, truth: dict[str, np.ndarray], f: float) -> list[str]:
         ray = rays(K, np.array([[xs.mean(), ys.mean()]]))[0]
         t.append(ray / np.linalg.norm(ray) * f / np.sqrt(mask.sum()))
     T = [truth[n] for n in names]
-    database = pycolmap.Database.open(db)
-    ims = {im.name: im for im in database.read_all_images()}
-    kp = {n: database.read_keypoints(ims[n].image_id)[:, :2].astype(np.float64) for n in names}
     lines, fits = [], {}
     ransac = pycolmap.RANSACOptions()
     ransac.max_error, ransac.random_seed = 2.0, sfm.RANSAC_SEED
-    for i, j in itertools.combinations(range(len(names)), 2):
-        m = database.read_two_view_geometry(ims[names[i]].image_id, ims[names[j]].image_id).inlier_matches
-        if len(m) < 2 * sfm.MIN_PAIR_INLIERS:
-            continue
-        ui, uj = kp[names[i]][m[:, 0]], kp[names[j]][m[:, 1]]
+    for (i, j), (ui, uj) in pairs.items():
         xi, xj = rays(K, ui), rays(K, uj)
         Rt = T[j][:3, :3] @ T[i][:3, :3].T
         tt = T[j][:3, 3] - Rt @ T[i][:3, 3]
@@ -177,7 +187,7 @@ def study(folder: Path, truth: dict[str, np.ndarray], f: float) -> list[str]:
         e_err = angle(found["cam2_from_cam1"].rotation.matrix(), Rt) if found else float("nan")
         R = prior_pair(t[i], t[j], xi, xj, f)
         if R is not None:
-            fits[(i, j)] = (R, len(m), xi, xj)
+            fits[(i, j)] = (R, len(ui), xi, xj)
         p_err = angle(R, Rt) if R is not None else float("nan")
         at_truth = (
             np.median(np.abs(sampson_px(Rt, t[j] - Rt @ t[i], xi, xj, f))),
@@ -185,10 +195,9 @@ def study(folder: Path, truth: dict[str, np.ndarray], f: float) -> list[str]:
         )
         v_err, v_cost, t_cost = valley(Rt, tt, xi, xj, f)
         lines.append(
-            f"| {names[i][-5]}-{names[j][-5]} | {len(m)} | {100 * fit_truth:.0f} % | {e_err:.1f} | {p_err:.1f} "
+            f"| {names[i][-5]}-{names[j][-5]} | {len(ui)} | {100 * fit_truth:.0f} % | {e_err:.1f} | {p_err:.1f} "
             f"| {at_truth[0]:.2f} / {at_truth[1]:.2f} px | {v_err:.1f} deg, {v_cost:.1f} / {t_cost:.1f} |"
         )
-    database.close()
     # all rotations: the prior's pairs along a maximum spanning tree (no joint refinement)
     group = {k: {k} for k in range(len(names))}
     R = {}
