@@ -20,11 +20,14 @@ from local_slurm import DAEMONS, LocalSlurm, children
 
 from wgs.workspace import Workspace
 
-# the time-limit scene: a coarse stage of about 100 s on one core, so that the signal finds it
-# training (all its iterations, as TINY's: the held-out stopping rule would end it long before)
+# the time-limit scene: a coarse stage long enough on one core that the time limit's signal (45-75 s
+# into the job) finds it training, and that it still trains when requeued after it resumed, on a
+# fast CPU too (5000 iterations took about 100 s on one core of a slow 2-core CPU; on a faster one
+# the requeue, 5 s after the stage resumed, found it in a later stage); all its iterations, as
+# TINY's: the held-out stopping rule would end it long before
 LONG_COARSE = TINY_ONE_MODEL.replace(
     "iterations = 30\nrefine_start = 10\nrefine_every = 10\ninit_points = 800\nhull_resolution = 32\nensemble = 1",
-    "iterations = 5000\nrefine_start = 10\nrefine_every = 100\ninit_points = 800\nhull_resolution = 32\nensemble = 1",
+    "iterations = 12000\nrefine_start = 10\nrefine_every = 100\ninit_points = 800\nhull_resolution = 32\nensemble = 1",
     1,
 )
 assert LONG_COARSE != TINY_ONE_MODEL and 'stop = "iterations"' in LONG_COARSE
@@ -148,7 +151,7 @@ def test_a_job_at_its_time_limit_then_preempted_resumes_to_the_same_model(cluste
     while "coarse: resuming from the saved state" not in log_file.read_text():
         assert time.monotonic() < end and lim.poll() is None, (jobs(cluster), log_file.read_text()[-3000:])
         time.sleep(0.5)
-    time.sleep(5)
+    time.sleep(2)  # into its training loop, where SIGTERM saves the state
     cluster.run("scontrol", "requeue", job, check=True)
     assert requeued_and_started(cluster, 2, lim) == job
     code, output = finish(lim)
