@@ -105,6 +105,7 @@ def test_three_that_pose_are_kept_and_the_fourth_is_named(tmp_path):
     record = json.loads((tmp_path / "ws" / "scene" / "scene.json").read_text())["cameras_corrected"]
     said = "cameras: corrected by training" if record["kept"] else "cameras: kept as posed"
     assert said in err and "of a photo's mask" in err, err
+    assert "nothing checks the poses" not in err  # the masks checked them
     assert json.loads((tmp_path / "ws" / "scene" / "scene.json").read_text())["train_names"] == [
         f"photo_00{i}.png" for i in range(3)
     ]
@@ -200,3 +201,16 @@ def test_a_pair_verifies_the_same_alone_and_among_others(tmp_path):
 
     runs = [verified(which, k) for k, which in enumerate((pairs, pairs[-1:], pairs, pairs[-1:]))]
     assert len(set(runs)) == 1
+
+
+def test_poses_without_masks_of_the_users_are_said_to_be_unchecked():
+    """Automatic masks are made under the poses and agree with wrong ones: posed photos without
+    masks of the user's get one line that says nothing checks them and how masks would; the
+    user's masks (given, or a --masks folder) are checked against the hull instead."""
+    from wgs.stages.prepare.run import unchecked_poses_line
+
+    for source in ("auto", "none"):
+        line = unchecked_poses_line(4, source)
+        assert line is not None and line.startswith("cameras: posed by wgs from 4 photos without masks")
+        assert "nothing checks the poses" in line and "--masks DIR" in line
+    assert unchecked_poses_line(4, "given") is None and unchecked_poses_line(4, "folder") is None

@@ -147,7 +147,9 @@ def scored(model, truth: dict[str, np.ndarray]) -> str:
     )
 
 
-def compare(folder: Path, truth: dict[str, np.ndarray], focal: float | None) -> dict[str, str]:
+def learned_database(folder: Path, focal: float | None):
+    """The learned matches of the photos in `folder` as `sfm.pose_photos` writes them, in
+    `folder/work/database.db` (the focal fixed where given). (work, db, image_dir, names, verified)."""
     image_dir, names, mask_dir = sfm.find_photos(folder)
     work = folder / "work"
     work.mkdir()
@@ -159,6 +161,12 @@ def compare(folder: Path, truth: dict[str, np.ndarray], focal: float | None) -> 
         reader.camera_params = f"{focal},{w / 2},{h / 2}"
     with sfm._colmap_quiet():
         verified = sfm._learned_database(db, image_dir, names, mask_dir, reader, pycolmap.CameraMode.SINGLE)
+    return work, db, image_dir, names, verified
+
+
+def compare(folder: Path, truth: dict[str, np.ndarray], focal: float | None) -> dict[str, str]:
+    work, db, image_dir, names, verified = learned_database(folder, focal)
+    with sfm._colmap_quiet():
         incremental = sfm._incremental_mapping(db, image_dir, work, len(names), 1, True, focal)
         options = pycolmap.GlobalPipelineOptions()
         options.random_seed, options.min_num_matches, options.min_model_size = sfm.RANSAC_SEED, sfm.MIN_PAIR_INLIERS, 3
