@@ -335,6 +335,10 @@ def test_the_report_says_where_the_masks_came_from_or_why_there_are_none():
     assert cropped.startswith("Training photos that crop the object") and "a.png, b.png" in cropped
     both = masks_note(SimpleNamespace(info={"masks": {**failed, "training_cropped": ["a.png"]}}))
     assert both.startswith("No masks") and "crop the object" in both
+    # photos wgs posed itself with no masks of the user's (prepare's `poses_checked`): the report says so
+    unchecked = masks_note(SimpleNamespace(info={"masks": {"source": "auto"}, "poses_checked": False}))
+    assert unchecked.startswith("The masks are automatic") and "no masks of yours checked the poses" in unchecked
+    assert "checked the poses" not in masks_note(SimpleNamespace(info={"masks": {"source": "auto"}}))
 
 
 def test_the_silhouette_line_names_the_views_it_scored():

@@ -49,7 +49,8 @@ def shape_reference(
 
 def masks_note(scene) -> str | None:
     """Where the masks came from when wgs made them (the truth is composited with them), or why the
-    automatic ones were not used; and which training photos crop the object."""
+    automatic ones were not used; that no masks checked poses wgs found itself; and which training
+    photos crop the object."""
     masks = scene.info.get("masks") or {}
     notes = []
     if masks.get("source") == "auto":
@@ -61,6 +62,12 @@ def masks_note(scene) -> str | None:
         notes.append(
             f"No masks: the automatic ones were not used ({masks['auto_failed']}), so there is no visual "
             "hull and no silhouette score; `wgs prepare --masks DIR` takes yours."
+        )
+    if scene.info.get("poses_checked") is False:
+        notes.append(
+            "wgs posed these photos itself, and no masks of yours checked the poses: repeating textures or a "
+            "symmetric object can be posed wrongly, and a model on wrong poses still fits its training views. "
+            "Masks of your own (`--masks DIR`) have the hull of the other photos check each pose."
         )
     if masks.get("training_cropped"):
         notes.append(
