@@ -37,7 +37,14 @@ from wgs.estimate import (
     stage_seconds,
 )
 from wgs.scene.prepare import downscale_for
-from wgs.stages.coarse.settings import model_config, model_start, pilot_iterations, pilots_s
+from wgs.stages.coarse.settings import (
+    MODELS_FACTOR,
+    model_config,
+    model_start,
+    pilot_iterations,
+    pilots_s,
+    with_found_stop,
+)
 
 # about this 2-core CPU's figures (a calibration made here)
 CAL = Calibration(
@@ -117,6 +124,13 @@ def test_the_held_out_rule_is_modelled_as_its_margin_times_the_expected_plateau_
     after, usual = stage_seconds(CAL, configs(), found), stage_seconds(CAL, configs(), facts)
     assert after["fine"] < 0.5 * usual["fine"]
     assert all(after[t] == usual[t] for t in ("mask_data", "finetune", "repair", "eval"))
+    # and the coarse stage is its models alone (the pilots have run), stopped at 300
+    assert with_found_stop(cfg, found).end_iteration == 300 and with_found_stop(cfg, facts) is cfg
+    assert after["coarse"] < 0.5 * usual["coarse"]
+    late = dataclasses.replace(facts, plateau=1000)  # a stop past the last iteration: all of them, no pilots
+    (before, _), (models, _) = costs(CAL, configs(), facts)["coarse"], costs(CAL, configs(), late)["coarse"]
+    assert before.other_s > 0 == models.other_s and models.loop_s == before.loop_s
+    assert models.factor == pytest.approx(MODELS_FACTOR * before.factor)  # what lego's models took over their model
 
 
 def test_members_that_carry_on_from_the_pilots_are_modelled_from_where_the_pilots_end():
@@ -134,6 +148,11 @@ def test_members_that_carry_on_from_the_pilots_are_modelled_from_where_the_pilot
     usual = configs()["coarse"]
     assert [model_start(usual, facts, i) for i in range(usual.ensemble)] == [0] * usual.ensemble
     assert model_start(dataclasses.replace(usual, members_from_pilots="always"), facts, 1) == pilot_iterations(usual)
+    # once the pilots ran (a plateau of 100: the models stop at 150), from where each ended; a
+    # pilot that ended past the stop leaves its member to train from the start
+    ran = dataclasses.replace(facts, plateau=100, pilot_ends=(90, 200, 120, 60))
+    stopped = with_found_stop(cfg, ran)
+    assert [model_start(stopped, ran, i) for i in range(cfg.ensemble)] == [0, 90, 0, 120, 60, 0]
     member = model_config(cfg, 1)
     assert loop_s(CAL, member, facts.pixels, start=n) < loop_s(CAL, member, facts.pixels)
     assert loop_s(CAL, member, facts.pixels, start=10**6) == 0.0

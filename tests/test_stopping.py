@@ -139,8 +139,9 @@ def test_coarse_and_fine_stop_where_the_pilots_stopped_gaining_say_why_and_resum
     the ensemble's second model carries on from the first pilot's state, given the photo that pilot
     held out, for its last 10 iterations. Each stage killed in its loop (the coarse stage in that
     member's) resumes to the uninterrupted run's models; `--stop iterations` trains all of G_f's
-    iterations. After the coarse stage the estimate of the rest takes the pilots' plateau in place
-    of the expected one: G_f is modelled at 50 iterations, G_d (all its iterations) as before."""
+    iterations. Once the pilots ended the estimate of the rest takes their plateau in place of the
+    expected one: the coarse models (without the pilots) and G_f are modelled at 50 iterations,
+    G_d (all its iterations) as before."""
     scene, base = tiny
     cfg = coarse_cfg(base, "stop.toml", "stop_tolerance_db = 100.0\nstop_min_iterations = 50\n", ensemble=2)
     cfg.write_text(
@@ -172,15 +173,20 @@ def test_coarse_and_fine_stop_where_the_pilots_stopped_gaining_say_why_and_resum
         "margin": 3.0,
         "stop_at": 50,
     }
-    # the estimate of the rest after the coarse stage: G_f at 50 of its 120 iterations, not all
-    assert "estimate of the rest, the coarse pilots' plateau at 0 (expected 625): about" in said, said
+    # the estimate of the rest once the pilots ended, before the coarse models train: the models
+    # without the pilots, and they and G_f at 50 of their 120 iterations, not all
+    line = "estimate of the rest, the coarse pilots' plateau at 0 (expected 625): about"
+    assert line in said, said
+    assert said.index("coarse: stops at iteration 50") < said.index(line) < said.index("model(s) from seeds"), said
     record = json.loads((ref / "run.json").read_text())
     before, after = record["estimate"], record["estimate_after_pilots"]
-    assert list(after) == [t for t in before if t != "coarse"]
-    assert after["fine"] < before["fine"]
+    assert list(after) == list(before)
+    assert after["coarse"] < before["coarse"] and after["fine"] < before["fine"]
     assert all(after[t] == before[t] for t in ("mask_data", "finetune", "repair", "eval"))
+    coarse = json.loads((ref / "1_coarse/manifest.json").read_text())
+    assert 0 < coarse["stopping"]["pilots_s"] < coarse["wall_time_s"]
     report = " ".join((ref / "6_eval/report.md").read_text().split())
-    assert "mask_data, finetune, repair, fine were estimated at" in report, report
+    assert "coarse, mask_data, finetune, repair, fine were estimated at" in report, report
     assert "fine stopped at iteration 50: 3 times the plateau of the coarse stage's pilots (iteration 0)" in report
 
     # killed in the member's loop, after the pilots saved where to stop and their states: the

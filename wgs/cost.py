@@ -74,6 +74,7 @@ class SceneFacts:
     posed_by_wgs: bool = False  # photos posed by prepare: eval localises the test cameras
     mask_share: float = FIT_MASK_SHARE  # the share of a training photo inside its mask (prepare's record)
     plateau: int | None = None  # the coarse pilots' plateau once they ran (before: EXPECTED_PLATEAU)
+    pilot_ends: tuple[int, ...] = ()  # where each of those pilots ended, in their order (once they ran)
 
     @property
     def pixels(self) -> int:

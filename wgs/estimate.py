@@ -398,20 +398,18 @@ class RunTiming:
         ws.write_run_record(record)
         return cfgs
 
-    def after_stage(self, ws: Workspace, name: str, cfgs: dict[str, Any]) -> None:
-        """Where stage `name` ran the held-out rule's pilots and they found the scene's plateau
-        (`gaussians.stopping`; the coarse stage): print the estimate of the stages still to run
-        after it with that plateau in place of the expected one (G_f stops at its margin times it)
-        and record it (`estimate_after_pilots`). Nothing for another stage, where a budget set the
-        stages' lengths, or where no stage is left."""
-        stopping = (ws.manifest(name) or {}).get("stopping") or {}
-        if self.facts is None or "pilot_iterations" not in stopping or self.budget_s or name not in self.pending:
+    def after_pilots(self, ws: Workspace, name: str, stop: dict[str, Any], cfgs: dict[str, Any]) -> None:
+        """Once stage `name`'s (the coarse stage's) held-out pilots found the scene's plateau (`gaussians.stopping`),
+        before its models train: print the estimate of the stages still to run, the coarse models
+        among them, with that plateau in place of the expected one (the models and G_f stop at
+        the margin times it, the members carry on from where their pilots ended), and record it
+        (`estimate_after_pilots`). Nothing where a budget set the stages' lengths or the coarse
+        stage was not estimated."""
+        if self.facts is None or self.budget_s or name not in self.pending:
             return
-        left = self.pending[self.pending.index(name) + 1 :]
-        if not left:
-            return
-        plateau = stopping["plateau"]
-        facts = dataclasses.replace(self.facts, plateau=plateau)
+        left = self.pending[self.pending.index(name) :]
+        plateau = stop["plateau"]
+        facts = dataclasses.replace(self.facts, plateau=plateau, pilot_ends=tuple(stop["pilot_iterations"].values()))
         estimate = per_stage(stage_seconds(self.calibration(), cfgs, facts), left)
         what = f"estimate of the rest, the {name} pilots' plateau at {plateau} (expected {EXPECTED_PLATEAU})"
         log(estimate_line(estimate, what))

@@ -5,6 +5,7 @@ one line each (`left_out`).
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -54,7 +55,8 @@ def run_all(
     config file), leaving out what the scene does not need and, of the stages that run only on
     request, those not in `asked`. After prepare it prints the estimate of what is left and, with
     `budget_s`, time-boxes the training stages so that the run ends within the budget; after the
-    stage that runs the stopping rule's pilots, the estimate of the rest with the plateau they found."""
+    stopping rule's pilots (in the coarse stage, before its models), the estimate of the rest with the
+    plateau they found."""
     from .estimate import RunTiming
     from .stages.registry import run_stage
 
@@ -71,7 +73,13 @@ def run_all(
             outcomes.append(StageOutcome(stage.name, "left out", 0.0, why))
             continue
         final = "coarse" if info is not None and left_out("fine", info, force_repair) else "fine"
-        env = ctx.env(device, scene_dir=scene_dir, final=final, working_size=timing)
+        env = ctx.env(
+            device,
+            scene_dir=scene_dir,
+            final=final,
+            working_size=timing,
+            pilots_found=functools.partial(timing.after_pilots, ws, stage.name, cfgs=cfgs),
+        )
         t0 = time.perf_counter()
         ran = run_stage(stage.name, ws, cfgs[stage.name], env, force)
         outcomes.append(StageOutcome(stage.name, "ran" if ran else "skipped (fresh)", time.perf_counter() - t0))
@@ -81,8 +89,6 @@ def run_all(
                 log("left out: no masks -> no visual hull, no mask loss, no random background")
             runs = tuple(s.name for s in REGISTRY if left_out(s.name, info, force_repair, asked) is None)
             cfgs = timing.after_prepare(ws, info, runs)
-        elif ran:
-            timing.after_stage(ws, stage.name, cfgs)
     return outcomes
 
 

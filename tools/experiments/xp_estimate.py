@@ -4,9 +4,10 @@ for those run with a budget, the time against the budget and the quality it boug
 For each workspace: the estimate its run printed (`run.json`), the estimate the model in
 `wgs/estimate.py` gives now from the same calibration and the stages' recorded settings, and
 each stage's wall time (its manifest); with TIMES (lines `NAME rc=0 wall=SECONDS`, as a run
-queue writes them) also the whole command's wall time. And for the stages after the coarse one,
-the model's estimate with the plateau the coarse pilots found (`RunTiming.after_stage`, which
-`wgs all` prints after the coarse stage) against the time they took.
+queue writes them) also the whole command's wall time. And once the coarse stage's pilots ended,
+the model's estimate of the rest (the coarse models, then the stages after them) with the plateau
+the pilots found (`RunTiming.after_pilots`, which `wgs all` prints then; where the run recorded
+it, the one printed) against the time they took (the coarse stage's less its pilots').
 
     python xp_estimate.py [--times TIMES] WORKSPACE...
 """
@@ -57,7 +58,11 @@ def one(ws: Workspace, wall: float | None) -> dict:
     facts = SceneFacts(sc["width"], sc["height"], sc["train"], sc["test"], has_masks=masks, mask_share=share(ws))
     now = stage_seconds(cal, cfgs, facts)
     stopping = (ws.manifest("coarse") or {}).get("stopping")
-    found = stage_seconds(cal, cfgs, dataclasses.replace(facts, plateau=stopping["plateau"])) if stopping else None
+    found = None
+    if stopping:
+        ends = tuple(stopping["pilot_iterations"].values())
+        ran = dataclasses.replace(facts, plateau=stopping["plateau"], pilot_ends=ends)
+        found = stage_seconds(cal, cfgs, ran)
     actual = {t: (ws.manifest(t) or {}).get("wall_time_s") for t in TABLES}
     printed = run.get("estimate") or {}
     shown = [t for t in TABLES if t != "prepare" and printed.get(t) is not None and actual[t] is not None]
@@ -80,18 +85,20 @@ def one(ws: Workspace, wall: float | None) -> dict:
             "printed_over_took": sum(printed[t] for t in rest) / took,
             "rescaled_over_took": ratio * sum(printed[t] for t in rest) / took,
         }
-    after_coarse = None
-    later = [t for t in shown if t != "coarse"] if "coarse" in shown else []
-    if found is not None and later:
-        took = sum(actual[t] for t in later)
-        after_coarse = {
+    after_pilots = None
+    if found is not None and "coarse" in shown and "pilots_s" in stopping:
+        later = shown[shown.index("coarse") :]
+        recorded = run.get("estimate_after_pilots") or {}
+        after_pilots = {
             "plateau": stopping["plateau"],
             "stages": later,
             "modelled": sum(found[t] for t in later),
-            "took": took,
+            "printed": sum(recorded[t] for t in later) if all(t in recorded for t in later) else None,
+            "took": sum(actual[t] for t in later) - stopping["pilots_s"],
+            "pilots_s": stopping["pilots_s"],
         }
     return {
-        "after_coarse": after_coarse,
+        "after_pilots": after_pilots,
         "after_first": after_first,
         "quality": quality,
         "workspace": ws.root.name,
@@ -149,14 +156,16 @@ def main() -> None:
         if (a := r["after_first"]) is not None:
             print(f"| {r['workspace']} | {a['stage']} | {a['printed_over_took']:.2f} | {a['rescaled_over_took']:.2f} |")
     print(
-        "\n| workspace | pilots' plateau | the rest after coarse: with that plateau (s) | took (s) | ratio |"
-        "\n| --- | ---: | ---: | ---: | ---: |"
+        "\n| workspace | pilots' plateau | pilots (s) | the rest once they ended: printed / model now (s) | took (s) "
+        "| printed / took | now / took |\n| --- | ---: | ---: | ---: | ---: | ---: | ---: |"
     )
     for r in rows:
-        if (c := r["after_coarse"]) is not None:
+        if (c := r["after_pilots"]) is not None:
+            printed, took = c["printed"], c["took"]
+            shown_s, ratio = ("", "") if printed is None else (f"{printed:.0f}", f"{printed / took:.2f}")
             print(
-                f"| {r['workspace']} | {c['plateau']} | {c['modelled']:.0f} | {c['took']:.0f} | "
-                f"{c['modelled'] / c['took']:.2f} |"
+                f"| {r['workspace']} | {c['plateau']} | {c['pilots_s']:.0f} | {shown_s} / {c['modelled']:.0f} | "
+                f"{took:.0f} | {ratio} | {c['modelled'] / took:.2f} |"
             )
     print()
     for r in rows:

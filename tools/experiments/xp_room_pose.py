@@ -9,9 +9,13 @@ training photos 0-3):
   "cameras:" line);
 - `wgs prepare --masks auto` on the photos alone (posed by wgs) and on the same 4 photos with the
   true cameras: the automatic masks' vote (`cut_by_agreement`, mean share of the network's object
-  area it cut).
+  area it cut);
+- with `--pilots`, on those two workspaces: the coarse stage's held-out pilots as a pose check
+  (`pilot_check`): per photo, a pilot trained on the other three (`train_pilot`, to its cap, no
+  early end), its best PSNR at the photo it held out (and where, and at its end), against that
+  photo predicted by the background alone and by the most alike other photo.
 
-    python tools/experiments/xp_room_pose.py [--objects box:5 mug:9 cabinet:7 vase:43 blobs:3]
+    python tools/experiments/xp_room_pose.py [--objects box:5 mug:9 cabinet:7 vase:43 blobs:3] [--pilots]
 """
 
 from __future__ import annotations
@@ -68,9 +72,37 @@ def prepare(folder: Path, ws: Path, *extra: str) -> str:
     return f"{line}" if cut is None else f"vote cut {100 * cut:.1f} % ({masks['source']})"
 
 
+def pilot_check(ws: Path) -> str:
+    """Per training photo: the held-out pilot's best PSNR @ its iteration -> at its end, then the
+    photo predicted by the background alone and by the most alike other photo (dB)."""
+    import torch
+
+    from wgs.metrics import psnr
+    from wgs.scene.dataset import composite, halved, load_prepared
+    from wgs.stages.coarse.run import train_pilot
+    from wgs.stages.coarse.settings import CoarseConfig
+    from wgs.stages.shared import background_for
+    from wgs.workspace import Workspace
+
+    space = Workspace(ws)
+    scene = load_prepared(space.output("prepare", "prepared"))
+    bg = background_for(scene)
+    views = {f.name: halved(f) for f in scene.colour_views}
+    refs = {n: composite(f.pixels, f.mask, bg) for n, f in views.items()}
+    said = []
+    for name, ref in refs.items():
+        curve = train_pilot(space, CoarseConfig(), torch.device("cpu"), 0, name, end_when_past=False)
+        at, best = max(curve, key=lambda c: c[1])
+        blank = psnr(bg.reshape(1, 1, -1).expand_as(ref), ref)
+        alike = max(psnr(r, ref) for n, r in refs.items() if n != name and r.shape == ref.shape)
+        said.append(f"{best:.2f} @{at} -> {curve[-1][1]:.2f} (blank {blank:.2f}, alike {alike:.2f})")
+    return "; ".join(said)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--objects", nargs="+", default=["box:5", "mug:9", "cabinet:7", "vase:43", "blobs:3"])
+    ap.add_argument("--pilots", action="store_true", help="the held-out pilots as a pose check (pilot_check)")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         t = Path(tmp)
@@ -103,6 +135,10 @@ def main() -> None:
             print(
                 f"  prepare, no masks, true cameras: {prepare(known, t / f'{spec}_ws3', '--masks', 'auto')}", flush=True
             )
+            if args.pilots:
+                for what, ws in (("posed by wgs", t / f"{spec}_ws2"), ("true cameras", t / f"{spec}_ws3")):
+                    if (ws / "scene" / "scene.json").is_file():
+                        print(f"  pilots, no masks, {what}: {pilot_check(ws)}", flush=True)
 
 
 if __name__ == "__main__":

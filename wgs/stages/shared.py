@@ -72,8 +72,9 @@ def subbands_hwc(img: torch.Tensor) -> dict[str, np.ndarray]:
 
 def stage_times(ws) -> list[dict[str, Any]]:
     """Wall time, cumulative wall time, peak memory, the run's estimate (`Workspace.run_record`,
-    None where it made none) and its estimate after the coarse stage's pilots (`estimate_after_pilots`), and
-    the iterations and where the stopping rule ended them, of each method stage that ran, in order."""
+    None where it made none), its estimate after the coarse stage's pilots (`estimate_after_pilots`)
+    and the stage's wall time after them (the coarse stage's less its pilots'), and the iterations
+    and where the stopping rule ended them, of each method stage that ran, in order."""
     rows, cum = [], 0.0
     record = ws.run_record()
     estimate = record.get("estimate") or {}
@@ -83,6 +84,7 @@ def stage_times(ws) -> list[dict[str, Any]]:
         if m is None:
             continue
         cum += m.get("wall_time_s", 0.0)
+        pilots_s = (m.get("stopping") or {}).get("pilots_s", 0.0)
         rows.append(
             {
                 "stage": st,
@@ -91,6 +93,7 @@ def stage_times(ws) -> list[dict[str, Any]]:
                 "peak_memory_mb": m.get("peak_memory_mb"),
                 "estimate_s": estimate.get(st),
                 "estimate_after_pilots_s": after_pilots.get(st),
+                "after_pilots_s": max(m.get("wall_time_s", 0.0) - pilots_s, 0.0),
                 "iterations": m.get("iterations"),
                 "stopping": m.get("stopping"),  # where the held-out rule stopped it (None: all its iterations)
             }

@@ -36,6 +36,9 @@ class StageEnv:
     scene_dir: Path | None = None  # prepare: the scene folder to import
     final: str = "fine"  # eval: the model it scores (fine, or coarse where the repair stages were left out)
     working_size: WorkingSize | None = None  # prepare: the size chosen for the machine; None: the photos' own
+    # coarse: given the held-out rule's stop record once its pilots found the plateau, before the
+    # models train (`wgs all` prints the estimate of the rest with it)
+    pilots_found: Callable[[dict], None] | None = None
 
 
 # run(ws, cfg, env, force) -> False when the stage was up to date and skipped (ws: a `Workspace`)

@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import math
+import time
 from pathlib import Path
 
 import torch
@@ -55,9 +56,7 @@ def write_coarse_outputs(run: StageRun, scene: PreparedScene, splats: Splats, de
 
 
 def run_coarse(ws: Workspace, cfg: CoarseConfig, env: StageEnv, force: bool = False) -> bool:
-    return ws.run_staged(
-        "coarse", cfg, {"seed": env.seed}, force, lambda run: train_coarse(run, ws, cfg, env.device, env.seed)
-    )
+    return ws.run_staged("coarse", cfg, {"seed": env.seed}, force, lambda run: train_coarse(run, ws, cfg, env))
 
 
 def train_model(
@@ -165,6 +164,7 @@ def held_out_stop(
     if found is not None:
         log("coarse: the pilots ran before the interruption: their stop is kept")
         return found
+    started = time.perf_counter()
     pixels = scene.train[0].width * scene.train[0].height // 4
     workers = side_by_side(len(photos), cfg.iterations, pixels, device.type == "cpu")
     jobs = [(ws, cfg, device, seed, name, True, pilot_state(run, cfg, i)) for i, name in enumerate(photos)]
@@ -183,6 +183,7 @@ def held_out_stop(
         "best_psnr": max(s for _, s in mean),
         "pilot_iterations": {p: curves[p][-1][0] for p in photos},
         "mean_curve": mean,
+        "pilots_s": round(time.perf_counter() - started, 2),  # their wall time, side by side
     }
     saved.save(record)
     return record
@@ -208,7 +209,8 @@ def member_start(run: StageRun, cfg: CoarseConfig, stop: dict | None, index: int
     return path
 
 
-def train_coarse(run: StageRun, ws: Workspace, cfg: CoarseConfig, device: torch.device, seed: int) -> str:
+def train_coarse(run: StageRun, ws: Workspace, cfg: CoarseConfig, env: StageEnv) -> str:
+    device, seed = env.device, env.seed
     scene = load_prepared(ws.output("prepare", "prepared"))
     workers = side_by_side(
         cfg.ensemble, cfg.iterations, scene.train[0].width * scene.train[0].height, device.type == "cpu"
@@ -222,6 +224,8 @@ def train_coarse(run: StageRun, ws: Workspace, cfg: CoarseConfig, device: torch.
             f"held out in turn, half size) came within {cfg.stop_tolerance_db} dB of its best "
             f"({stop['held_out_psnr']:.2f} of {stop['best_psnr']:.2f} dB)"
         )
+        if env.pilots_found is not None:
+            env.pilots_found(stop)
     ends = cfg.end_iteration or cfg.iterations
     log(
         f"coarse: {cfg.ensemble} model(s) from seeds {seed}..{seed + cfg.ensemble - 1}, {len(scene.train)} views, "

@@ -20,13 +20,17 @@ from ...cost import (
     side_by_side_share,
 )
 from ...fields import option
-from ...gaussians.stopping import StopParams, pilot_cap
+from ...gaussians.stopping import StopParams, pilot_cap, stop_iteration
 from ...gaussians.trainer import TrainConfig
 from ...threads import side_by_side
 from ..stage import FAST_TRAINING, MODEL_OUTPUTS, CurveConfig, Stage, StageEnv
 
 MEMBERS_FROM_PILOTS = ("early", "always", "never")  # `members_from_pilots`'s choices
 FACTOR = 1.0  # time / modelled work on whole runs (lego at 200 px, ethiopianHead at 307 px; docs/speed.md)
+# the models' time over their modelled work once the pilots ran and the stop is known (the worker
+# processes' start, the outputs, the side-by-side models slower than their modelled share): lego's
+# 4 views at 200 px, 72.6 s against 54.9 s (docs/speed.md, "The estimate of the rest, once the pilots ended")
+MODELS_FACTOR = 1.32
 
 
 @dataclass
@@ -89,21 +93,36 @@ def pilots_s(cal: Calibration, cfg: CoarseConfig, facts: SceneFacts, workers: in
 def model_start(cfg: CoarseConfig, facts: SceneFacts, index: int) -> int:
     """The iteration the ensemble's model `index` starts from: where its pilot ended, for the
     members that carry on from one (`members_from_pilots`; "early": where the models are expected
-    to stop before their last iteration), else 0."""
+    to stop before their last iteration; once the pilots ran, `facts.pilot_ends`, a member whose
+    pilot ended at or past the models' stop trains from the start), else 0."""
     when = cfg.members_from_pilots
-    chosen = when == "always" or (when == "early" and expected_iterations(cfg) < cfg.iterations)
-    carried = chosen and 1 <= index <= min(facts.n_train, cfg.stop_pilots)
-    return pilot_iterations(cfg) if carried else 0
+    end = expected_iterations(cfg)
+    chosen = when == "always" or (when == "early" and end < cfg.iterations)
+    if not chosen or not 1 <= index <= min(facts.n_train, cfg.stop_pilots):
+        return 0
+    if not facts.pilot_ends:
+        return pilot_iterations(cfg)
+    ended = facts.pilot_ends[index - 1] if index - 1 < len(facts.pilot_ends) else end
+    return ended if ended < end else 0
+
+
+def with_found_stop(cfg: CoarseConfig, facts: SceneFacts) -> CoarseConfig:
+    """`cfg` stopped where the pilots' plateau puts the models, once they ran (`facts.plateau`)."""
+    if facts.plateau is None or cfg.stop != "held-out" or cfg.max_seconds or cfg.end_iteration:
+        return cfg
+    end = stop_iteration(facts.plateau, cfg.stop_margin, cfg.stop_min_iterations, cfg.iterations)
+    return dataclasses.replace(cfg, end_iteration=end)
 
 
 def cost(cal: Calibration, cfgs: Mapping[str, Any], facts: SceneFacts, before: Mapping[str, float]) -> StageCost:
     """The ensemble's models, side by side where that pays, after the held-out rule's pilots; the
-    members that carry on from a pilot train from where it ended."""
-    cfg: CoarseConfig = cfgs["coarse"]
+    members that carry on from a pilot train from where it ended. Once the pilots ran
+    (`facts.plateau`): the models alone, to the stop the pilots found."""
+    cfg = with_found_stop(cfgs["coarse"], facts)
     on_cpu = cal.device.split(":")[0] == "cpu"
     workers = side_by_side(cfg.ensemble, cfg.iterations, facts.pixels, on_cpu)
     pilots = side_by_side(min(facts.n_train, cfg.stop_pilots), cfg.iterations, facts.pixels // 4, on_cpu)
-    factor = FACTOR * cover_factor(facts)
+    factor = FACTOR * cover_factor(facts) * (MODELS_FACTOR if facts.plateau is not None else 1.0)
     models = [
         loop_s(cal, model_config(cfg, i), facts.pixels, start=model_start(cfg, facts, i)) for i in range(cfg.ensemble)
     ]
@@ -112,7 +131,7 @@ def cost(cal: Calibration, cfgs: Mapping[str, Any], facts: SceneFacts, before: M
         loops=math.ceil(cfg.ensemble / workers),
         loop_s=statistics.fmean(models) * side_by_side_share(workers),
         factor=factor,
-        other_s=factor * pilots_s(cal, cfg, facts, pilots),
+        other_s=0.0 if facts.plateau is not None else factor * pilots_s(cal, cfg, facts, pilots),
     )
 
 

@@ -58,11 +58,12 @@ def write_report(
     ]
     after = [r for r in times if r.get("estimate_after_pilots_s") is not None]
     if after:
-        modelled, took = sum(r["estimate_after_pilots_s"] for r in after), sum(r["wall_time_s"] for r in after)
+        modelled, took = sum(r["estimate_after_pilots_s"] for r in after), sum(r["after_pilots_s"] for r in after)
         lines += [
             f"With the plateau the coarse stage's pilots found in place of the expected one, "
-            f"{', '.join(r['stage'] for r in after)} were estimated at {modelled:.1f} s after the coarse "
-            f"stage; they took {took:.1f} s (estimate / time {modelled / max(took, 1e-9):.2f}).",
+            f"{', '.join(r['stage'] for r in after)} were estimated at {modelled:.1f} s once the pilots "
+            f"ended (the coarse stage's models, then the stages after it); they took {took:.1f} s "
+            f"(estimate / time {modelled / max(took, 1e-9):.2f}).",
             "",
         ]
     for r in times:
