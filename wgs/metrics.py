@@ -122,8 +122,12 @@ def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5)
     """SSIM of two images [H, W, C] in [0, 1] (zero-padded Gaussian window, mean over the map).
 
     Two identical images give 1. Constant images are well defined through the C1, C2 terms.
+    Computed in float32 unless an image is float64: 7x faster than in float64 at 200 x 200 on
+    this project's 2-core CPU (2.0 against 13.9 ms), within 1.7e-6 of it on 100 of lego's renders
+    and 1.1e-5 on a noisy white background (`tests/test_metrics.py`).
     """
     if a.shape != b.shape or a.dim() != 3:
         raise ValueError(f"ssim expects two [H, W, C] images of one shape, got {tuple(a.shape)}, {tuple(b.shape)}")
-    x, y = (t.permute(2, 0, 1)[None].double() for t in (a, b))
+    dtype = torch.promote_types(torch.promote_types(a.dtype, b.dtype), torch.float32)
+    x, y = (t.permute(2, 0, 1)[None].to(dtype) for t in (a, b))
     return float(ssim_map(x, y, window, sigma).mean())
