@@ -105,3 +105,14 @@ def test_the_tests_config_files_are_valid_toml(tmp_path, monkeypatch):
     for i, text in enumerate(texts):
         (tmp_path / f"c{i}.toml").write_text(text)
         assert load_config_file(tmp_path / f"c{i}.toml")["coarse"]
+
+
+def test_the_ensemble_starts_its_longest_models_first():
+    """Lego's stop (1200 of 1500) and its pilots' ends: G_c (its first 30 % at half size), then the
+    sixth model (60 %, from the start), then the members carried on from the pilots, least far first."""
+    from wgs.stages.coarse.run import longest_first
+    from wgs.stages.coarse.settings import CoarseConfig
+
+    cfg = CoarseConfig(end_iteration=1200)
+    assert longest_first(cfg, [0, 675, 675, 600, 425, 0]) == [0, 5, 4, 3, 1, 2]
+    assert longest_first(CoarseConfig(ensemble=3), [0, 0, 0]) == [0, 1, 2]  # ties keep their order

@@ -141,14 +141,18 @@ def cover_factor(facts: SceneFacts) -> float:
     return max(MIN_SHARE_FACTOR, 1.0 + MASK_SHARE_SLOPE * (facts.mask_share - FIT_MASK_SHARE))
 
 
-def loop_s(cal: Calibration, cfg: TrainConfig, pixels: float, renders: float = 1.0, start: int = 0) -> float:
-    """One training loop's modelled seconds: its expected iterations after `start` (where it carries
-    on from another loop's state), those in the first `half_size_until` of the schedule at half size."""
+def loop_iterations(cfg: TrainConfig, start: int = 0) -> tuple[float, float]:
+    """A training loop's expected iterations after `start` (where it carries on from another
+    loop's state): (at half size, those in the first `half_size_until` of the schedule; at full size)."""
     ends = expected_iterations(cfg)
     start = min(start, ends)
     half_ends = min(ends, cfg.half_size_until * cfg.iterations)
-    half = max(half_ends - start, 0)
-    full = ends - max(half_ends, start)
+    return max(half_ends - start, 0), ends - max(half_ends, start)
+
+
+def loop_s(cal: Calibration, cfg: TrainConfig, pixels: float, renders: float = 1.0, start: int = 0) -> float:
+    """One training loop's modelled seconds (`loop_iterations`)."""
+    half, full = loop_iterations(cfg, start)
     return (half * cal.view_s(pixels / 4) + full * cal.view_s(pixels)) * renders
 
 

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import torch
 
+from ...cost import loop_iterations
 from ...curves import test_probe, write_curve
 from ...gaussians.callbacks import Probe
 from ...gaussians.splats import VIEWER_SH_DEGREE, Splats, export_ply, save_checkpoint, to_world
@@ -209,6 +210,19 @@ def member_start(run: StageRun, cfg: CoarseConfig, stop: dict | None, index: int
     return path
 
 
+def longest_first(cfg: CoarseConfig, starts: list[int]) -> list[int]:
+    """The ensemble's models in the order to start them side by side, the most work first (its
+    iterations from `starts[i]`, a half-size one a quarter of a full-size one; ties in their own
+    order): G_c and the models that train from the start go before the members carried on from the
+    pilots, so that no long model starts last and leaves a process idle."""
+
+    def work(i: int) -> float:
+        half, full = loop_iterations(model_config(cfg, i), starts[i])
+        return half / 4 + full
+
+    return sorted(range(len(starts)), key=lambda i: -work(i))
+
+
 def train_coarse(run: StageRun, ws: Workspace, cfg: CoarseConfig, env: StageEnv) -> str:
     device, seed = env.device, env.seed
     scene = load_prepared(ws.output("prepare", "prepared"))
@@ -253,8 +267,10 @@ def train_coarse(run: StageRun, ws: Workspace, cfg: CoarseConfig, env: StageEnv)
         )
     results: dict[int, TrainResult] = {}
     probe_names: list[str] = []
+    pilot_ends = list(stop["pilot_iterations"].values()) if stop is not None else []
+    order = longest_first(cfg, [pilot_ends[i - 1] if job[-1] is not None else 0 for i, job in enumerate(jobs)])
     with progress_bar("coarse models", cfg.ensemble) if workers > 1 else contextlib.nullcontext() as bar:
-        for i, (res, names) in map_in_processes(train_model, jobs, workers):
+        for i, (res, names) in map_in_processes(train_model, jobs, workers, order=order):
             results[i] = res
             if i == 0:
                 probe_names = names

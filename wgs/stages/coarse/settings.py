@@ -29,8 +29,9 @@ MEMBERS_FROM_PILOTS = ("early", "always", "never")  # `members_from_pilots`'s ch
 FACTOR = 1.0  # time / modelled work on whole runs (lego at 200 px, ethiopianHead at 307 px; docs/speed.md)
 # the models' time over their modelled work once the pilots ran and the stop is known (the worker
 # processes' start, the outputs, the side-by-side models slower than their modelled share): lego's
-# 4 views at 200 px, 72.6 s against 54.9 s (docs/speed.md, "The estimate of the rest, once the pilots ended")
-MODELS_FACTOR = 1.32
+# 4 views at 200 px, 72.6 s against 54.9 s with the models started in their own order, times 0.853
+# for the longest first (`run.longest_first`; docs/speed.md, "The estimate of the rest, once the pilots ended")
+MODELS_FACTOR = 1.13
 
 
 @dataclass
