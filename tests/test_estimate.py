@@ -34,6 +34,7 @@ from wgs.estimate import (
     choose_downscale,
     costs,
     parse_duration,
+    probe_s,
     stage_seconds,
 )
 from wgs.scene.prepare import downscale_for
@@ -70,6 +71,7 @@ def test_calibration_cached_for_an_hour(tmp_path, monkeypatch):
     monkeypatch.setenv("WGS_CACHE", str(tmp_path))
     calls = []
     monkeypatch.setattr("wgs.estimate.calibrate", lambda device: calls.append(device) or CAL)
+    monkeypatch.setattr("wgs.estimate.probe_s", lambda device: 0.010)
     assert cached_calibration(torch.device("cpu"), now=1000.0) == CAL
     assert cached_calibration(torch.device("cpu"), now=1000.0 + CALIBRATION_MAX_AGE_S / 2) == CAL
     assert len(calls) == 1
@@ -77,6 +79,28 @@ def test_calibration_cached_for_an_hour(tmp_path, monkeypatch):
     assert len(calls) == 2
     (tmp_path / "calibration.json").write_text("{broken")
     assert cached_calibration(torch.device("cpu"), now=1.0) == CAL  # a broken cache is made again
+
+
+def test_calibration_made_on_a_busier_machine_is_made_again(tmp_path, monkeypatch):
+    """A cached calibration whose probe ran slower than the probe now (another run's processes were
+    busy then) is timed again; one made on a machine as idle as now, or idler, is kept."""
+    monkeypatch.setenv("WGS_CACHE", str(tmp_path))
+    calls, probes = [], iter([0.016, 0.016, 0.013, 0.010, 0.010, 0.016])
+    monkeypatch.setattr("wgs.estimate.calibrate", lambda device: calls.append(device) or CAL)
+    monkeypatch.setattr("wgs.estimate.probe_s", lambda device: next(probes))
+    cpu = torch.device("cpu")
+    cached_calibration(cpu, now=1000.0)  # made busy: 16 ms (before and after calibrating)
+    cached_calibration(cpu, now=1001.0)  # 13 ms now: within BUSIER_RATIO, kept
+    assert len(calls) == 1
+    cached_calibration(cpu, now=1002.0)  # 10 ms now: made again, and its probe recorded
+    assert len(calls) == 2
+    assert json.loads((tmp_path / "calibration.json").read_text()).popitem()[1]["probe_s"] == 0.010
+    cached_calibration(cpu, now=1003.0)  # busier now (16 ms): the idle calibration is kept
+    assert len(calls) == 2
+
+
+def test_smoke_probe_s_cpu():
+    assert 0 < probe_s(torch.device("cpu")) < 5.0
 
 
 def test_stage_seconds_grow_with_size_and_iterations():
@@ -196,6 +220,22 @@ def test_prepare_records_the_mask_share_the_estimate_reads(finished_workspace):
     share = info["masks"]["training_share"]
     assert 0.05 < share < 0.95 and share == pytest.approx(np.mean([(m > 0.5).mean() for m in masks]), abs=1e-4)
     assert json.loads((ws / "run.json").read_text())["scene"]["mask_share"] == share
+
+
+def test_working_size_reads_the_given_masks_share(finished_workspace, tmp_path):
+    """Before anything is loaded, the chooser's share of the given masks (here the images' alpha)
+    is the one prepare records at the working size; photos without masks give none."""
+    from wgs.io.images import read_image, split_rgba, write_png
+    from wgs.scene.prepare import given_mask_share, load_scene_for_prepare
+
+    base = finished_workspace[0]
+    info = json.loads((base / "ws" / "scene" / "scene.json").read_text())
+    scene = load_scene_for_prepare(base / "scene", None, 8)
+    assert given_mask_share(scene, 10**8) == pytest.approx(info["masks"]["training_share"], abs=0.02)
+    opaque = tmp_path / "opaque.png"
+    write_png(opaque, split_rgba(read_image(scene.views[scene.train[0]].image))[0])
+    scene.views[scene.train[0]].image = opaque
+    assert given_mask_share(scene, 10**8) is None
 
 
 def test_max_seconds_caps_a_stage():
@@ -383,6 +423,19 @@ def test_budget_with_the_baseline_halves_the_training():
     assert sum(both.values()) == pytest.approx(1200.0, rel=0.02)
     assert both["coarse"] < 0.55 * alone["coarse"]
     assert "baseline" in both and "baseline" not in alone
+
+
+def test_working_size_counts_the_masks_share(monkeypatch):
+    """An object that fills its photos costs more per pixel (`cover_factor`): the chooser, told the
+    given masks' share, picks a smaller working size for it than for the same photos with the share
+    of the fit, and without a share it models that of the fit."""
+    monkeypatch.setattr("wgs.estimate.cached_calibration", lambda device: CAL)
+    timing = RunTiming(torch.device("cpu"), configs())
+    k_fit, _ = timing(1600, 1200, 4, 8, True, FIT_MASK_SHARE)
+    k_close, line = timing(1600, 1200, 4, 8, True, 0.75)
+    assert k_close > k_fit
+    assert timing(1600, 1200, 4, 8, True, None)[0] == k_fit
+    assert line.startswith(f"working size: {1600 // k_close}x{1200 // k_close}")
 
 
 def test_working_size_counts_the_baseline_when_asked():

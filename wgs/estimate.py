@@ -57,6 +57,10 @@ HEADROOM = 3.0
 # a calibration is reused by the runs of the next hour on the same machine, device, thread count
 # and versions (a test suite's many small runs, a batch of scenes), from $WGS_CACHE (default ~/.cache/wgs)
 CALIBRATION_MAX_AGE_S = 3600.0
+# unless the rasterizer's probe (`probe_s`) now runs this many times as fast as when it was made: it
+# was then made on a busier machine (another run's processes), and would lengthen every estimate
+BUSIER_RATIO = 1.25
+PROBE_SIDE = CALIBRATION_SIDES[0]
 FIRST = REGISTRY[0].name  # the stage that reads the scene; the estimate is made after it
 # the stages a budget shares out unless told which: those after the first that run unasked
 AFTER_FIRST = tuple(s.name for s in REGISTRY[1:] if not s.on_request)
@@ -155,14 +159,32 @@ def machine_key(device: torch.device) -> str:
     )
 
 
+def probe_s(device: torch.device) -> float:
+    """Seconds of the rasterizer's forward + backward on the calibration's small view, the least of
+    3 (about 0.1 s on a 2-core CPU): how busy the machine is now, against a cached calibration."""
+    from .gaussians.render import pick_backend
+    from .gaussians.synthetic import time_backend
+
+    with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
+        timed = time_backend(pick_backend(device), PROBE_SIDE, CALIBRATION_GAUSSIANS, 3, device=device)
+    return float(timed["forward_backward"]["min_s"])
+
+
 def cached_calibration(device: torch.device, now: float | None = None) -> Calibration:
-    """`calibrate(device)`, or the calibration of this machine made within CALIBRATION_MAX_AGE_S."""
+    """`calibrate(device)`, or the calibration of this machine made within CALIBRATION_MAX_AGE_S,
+    unless the probe now runs BUSIER_RATIO times as fast as it did then."""
     path, key, now = cache_dir() / "calibration.json", machine_key(device), time.time() if now is None else now
+    probe = probe_s(device)
     try:
         held = json.loads(path.read_text(encoding="utf-8"))
         entry = held.get(key) if isinstance(held, dict) else None
         if entry and 0 <= now - entry["made"] <= CALIBRATION_MAX_AGE_S:
-            return Calibration(**{**entry["calibration"], "raster": tuple(entry["calibration"]["raster"])})
+            if probe * BUSIER_RATIO >= entry["probe_s"]:
+                return Calibration(**{**entry["calibration"], "raster": tuple(entry["calibration"]["raster"])})
+            log(
+                f"calibration: the cached one was made on a busier machine (its probe {entry['probe_s'] * 1e3:.1f} ms,"
+                f" now {probe * 1e3:.1f} ms); timing again"
+            )
     except (OSError, ValueError, KeyError, TypeError):
         held = {}
     cal = calibrate(device)
@@ -172,7 +194,8 @@ def cached_calibration(device: torch.device, now: float | None = None) -> Calibr
             for k, v in (held if isinstance(held, dict) else {}).items()
             if isinstance(v, dict) and now - v.get("made", 0) <= CALIBRATION_MAX_AGE_S
         }
-        atomic_write_json(path, {**fresh, key: {"made": now, "calibration": dataclasses.asdict(cal)}})
+        entry = {"made": now, "probe_s": min(probe, probe_s(device)), "calibration": dataclasses.asdict(cal)}
+        atomic_write_json(path, {**fresh, key: entry})
     except OSError:
         pass  # a read-only home: calibrate every run
     return cal
@@ -305,7 +328,9 @@ class RunTiming:
             self._cal = cached_calibration(self.device)
         return self._cal
 
-    def __call__(self, width: int, height: int, n_train: int, n_test: int, has_masks: bool) -> tuple[int, str]:
+    def __call__(
+        self, width: int, height: int, n_train: int, n_test: int, has_masks: bool, mask_share: float | None = None
+    ) -> tuple[int, str]:
         """The working size (`stages.stage.WorkingSize`)."""
         if self.device.type != "cpu" and not self.budget_s:
             k = downscale_for(width, height, GPU_MAX_SIZE)
@@ -315,7 +340,15 @@ class RunTiming:
             )
         cal = self.calibration()
         target = self.budget_s or CPU_TARGET_S
-        facts = SceneFacts(width, height, n_train, n_test, full_pixels=width * height, has_masks=has_masks)
+        facts = SceneFacts(
+            width,
+            height,
+            n_train,
+            n_test,
+            full_pixels=width * height,
+            has_masks=has_masks,
+            mask_share=FIT_MASK_SHARE if mask_share is None else mask_share,
+        )
         k, modelled = choose_downscale(cal, self.cfgs, facts, target, self.runs)
         total = modelled if modelled is not None else math.inf  # a target gives a time
         limit = f"the budget of {minutes(target)}" if self.budget_s else f"about {minutes(target)}"

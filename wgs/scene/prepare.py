@@ -195,6 +195,27 @@ def mask_share(masks: list[np.ndarray]) -> float:
     return round(float(np.mean([(m > 0.5).mean() for m in masks])), 4)
 
 
+def given_mask_share(scene: RawScene, max_pixels: int) -> float | None:
+    """`mask_share` of the training photos' given masks (a mask file, or the image's alpha) at their
+    full size, before any is loaded for training: the working size's chooser counts it. None where a
+    training photo has neither (its mask is yet to be made) or one cannot be read (load_views says why)."""
+    masks = []
+    for i in scene.train:
+        v = scene.views[i]
+        try:
+            mask = (
+                to_mask(read_image(v.mask, max_pixels))
+                if v.mask is not None
+                else split_rgba(read_image(v.image, max_pixels))[1]
+            )
+        except InputError:
+            return None
+        if mask is None:
+            return None
+        masks.append(mask)
+    return mask_share(masks) if masks else None
+
+
 def write_prepared(
     scene: RawScene,
     views: LoadedViews,

@@ -19,12 +19,15 @@ if TYPE_CHECKING:
 
 class WorkingSize(Protocol):
     """Prepare's working size where neither downscale nor max_size is set: (photo width, height,
-    training views, test views, whether it will have masks) -> (downscale, the line that says
+    training views, test views, whether it will have masks, the share of a training photo inside
+    its given mask or None where the masks are yet to be made) -> (downscale, the line that says
     why). `key` names the rule; a change of it makes the prepared scene stale."""
 
     key: str
 
-    def __call__(self, width: int, height: int, n_train: int, n_test: int, has_masks: bool) -> tuple[int, str]: ...
+    def __call__(
+        self, width: int, height: int, n_train: int, n_test: int, has_masks: bool, mask_share: float | None = None
+    ) -> tuple[int, str]: ...
 
 
 @dataclass(frozen=True)

@@ -23,6 +23,7 @@ from ...scene.prepare import (
     MASK_MIN_FRACTION,
     LoadedViews,
     downscale_for,
+    given_mask_share,
     load_scene_for_prepare,
     load_views,
     scene_inputs_digest,
@@ -155,7 +156,9 @@ def working_downscale(scene: RawScene, cfg: PrepareConfig, env: StageEnv) -> tup
         )
     if env.working_size is None:
         return 1, None
-    return env.working_size(v.width, v.height, len(scene.train), len(scene.test), cfg.masks != "none")
+    has_masks = cfg.masks != "none"
+    share = given_mask_share(scene, cfg.max_pixels) if has_masks else None
+    return env.working_size(v.width, v.height, len(scene.train), len(scene.test), has_masks, share)
 
 
 def scene_masks(views: LoadedViews, cfg: PrepareConfig, run: StageRun) -> tuple[list, dict, list]:
