@@ -436,6 +436,7 @@ def test_working_size_counts_the_masks_share(monkeypatch):
     assert k_close > k_fit
     assert timing(1600, 1200, 4, 8, True, None)[0] == k_fit
     assert line.startswith(f"working size: {1600 // k_close}x{1200 // k_close}")
+    assert "the object covers 75 % of the photos" in line
 
 
 def test_working_size_counts_the_baseline_when_asked():

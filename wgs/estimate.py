@@ -364,8 +364,9 @@ class RunTiming:
                 f"the photos' {width}x{height} / {k}, the smallest allowed (a long side of at least {MIN_SIZE} px): "
                 f"wgs all is modelled to take {minutes(total)} at it, over {limit}"
             )
+        cover = f"; the object covers {100 * mask_share:.0f} % of the photos" if mask_share is not None else ""
         return k, (
-            f"working size: {width // k}x{height // k} ({why}; {cal.device}, {cal.threads} threads); "
+            f"working size: {width // k}x{height // k} ({why}{cover}; {cal.device}, {cal.threads} threads); "
             "--max-size or --downscale set it"
         )
 
