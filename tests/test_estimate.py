@@ -12,6 +12,7 @@ from wgs.cost import (
     EXPECTED_PLATEAU,
     FIT_MASK_SHARE,
     GPU_MAX_SIZE,
+    HULL_PLATEAU_LINE,
     MASK_SHARE_SLOPE,
     MIN_SHARE_FACTOR,
     NO_MASKS_FACTOR,
@@ -21,6 +22,7 @@ from wgs.cost import (
     expected_follow_end,
     expected_iterations,
     loop_s,
+    plateau_from_hull,
     time_boxed,
 )
 from wgs.errors import InputError
@@ -33,6 +35,7 @@ from wgs.estimate import (
     calibrate,
     choose_downscale,
     costs,
+    hull_loo_iou,
     parse_duration,
     probe_s,
     stage_seconds,
@@ -207,6 +210,33 @@ def test_the_training_stages_grow_with_the_share_of_the_frame_the_object_covers(
     )
 
 
+def test_plateau_expected_from_the_hulls_leave_one_out_iou():
+    (low, early), (high, late) = HULL_PLATEAU_LINE
+    assert plateau_from_hull(None) == EXPECTED_PLATEAU == late
+    assert plateau_from_hull(low - 0.1) == plateau_from_hull(low) == early
+    assert plateau_from_hull(high + 0.05) == late
+    middle = [plateau_from_hull(low + k * (high - low) / 4) for k in range(5)]
+    assert middle == sorted(middle) and early < middle[2] < late
+    assert hull_loo_iou({"mirror": {"leave_one_out_iou": 0.6, "leave_one_out_iou_mirrored": 0.8}}) == 0.8
+    assert hull_loo_iou({"mirror": None}) is None and hull_loo_iou({}) is None
+
+
+def test_an_early_expected_plateau_shortens_the_coarse_and_fine_stages_only():
+    usual = stage_seconds(CAL, configs(), SceneFacts(128, 128, 4, 8))
+    early = stage_seconds(CAL, configs(), SceneFacts(128, 128, 4, 8, expected_plateau=125))
+    assert early["coarse"] < 0.6 * usual["coarse"] and early["fine"] < 0.5 * usual["fine"]
+    assert all(early[t] == usual[t] for t in ("mask_data", "finetune", "repair", "eval"))
+    # the pilots are counted to the expected plateau and its patience; the members carry on from them
+    cfg, facts = configs()["coarse"], SceneFacts(128, 128, 4, 8, expected_plateau=125)
+    assert pilot_iterations(cfg, 125) == 125 + cfg.stop_patience
+    assert model_start(cfg, facts, 1) == 125 + cfg.stop_patience
+    # once the pilots ran, their plateau counts, not the expected one
+    found = dataclasses.replace(facts, plateau=400, pilot_ends=(650,) * 4)
+    assert stage_seconds(CAL, configs(), found) == stage_seconds(
+        CAL, configs(), dataclasses.replace(found, expected_plateau=EXPECTED_PLATEAU)
+    )
+
+
 def test_prepare_records_the_mask_share_the_estimate_reads(finished_workspace):
     import numpy as np
 
@@ -219,7 +249,9 @@ def test_prepare_records_the_mask_share_the_estimate_reads(finished_workspace):
     ]
     share = info["masks"]["training_share"]
     assert 0.05 < share < 0.95 and share == pytest.approx(np.mean([(m > 0.5).mean() for m in masks]), abs=1e-4)
-    assert json.loads((ws / "run.json").read_text())["scene"]["mask_share"] == share
+    scene = json.loads((ws / "run.json").read_text())["scene"]
+    assert scene["mask_share"] == share
+    assert scene["expected_plateau"] == plateau_from_hull(hull_loo_iou(info))  # from prepare's mirror check
 
 
 def test_working_size_reads_the_given_masks_share(finished_workspace, tmp_path):

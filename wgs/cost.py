@@ -34,11 +34,17 @@ NO_MASKS_FACTOR = 1.9
 # side-by-side coarse models (one thread each, `threads.side_by_side`) train this many
 # times as fast, together, as one model on every thread (measured on 2 cores, wgs/threads.py)
 SIDE_BY_SIDE_THROUGHPUT = 1.5
-# Where the held-out stopping rule's pilots stop gaining, for the estimate made before they run: the
-# median over seven kinds of capture (125-700: lego 400, a generated object 45 degrees apart 425,
-# close-ups 125 and 625, no masks 625, all around 700 and 700; docs/speed.md), so that the usual
-# capture trains all its iterations, as its stop at 3 x 625 says
+# Where the held-out stopping rule's pilots stop gaining, for the estimate made before they run,
+# where the hull's leave-one-out IoU is not known (no masks; the working-size chooser, before
+# prepare): the median over seven kinds of capture (125-700: lego 400, a generated object 45 degrees
+# apart 425, close-ups 125 and 625, no masks 625, all around 700 and 700; docs/speed.md), so that
+# such a capture trains all its iterations, as its stop at 3 x 625 says
 EXPECTED_PLATEAU = 625
+# Where it is known (prepare's mirror check: how well the hull of the other photos predicts each
+# photo's mask), a hull that predicts the photos poorly leaves the models to overfit them sooner:
+# the plateau on the line through these two (IoU, plateau) points, clamped between their plateaus;
+# fitted on six kinds of capture (docs/speed.md, "The plateau expected from the hull")
+HULL_PLATEAU_LINE = ((0.72, 125), (0.88, EXPECTED_PLATEAU))
 D_STEP_BATCH, D_STEP_CROP, D_STEP_CHANNELS = 16, 32, 32  # the D training step timed
 
 
@@ -73,12 +79,18 @@ class SceneFacts:
     has_masks: bool = True
     posed_by_wgs: bool = False  # photos posed by prepare: eval localises the test cameras
     mask_share: float = FIT_MASK_SHARE  # the share of a training photo inside its mask (prepare's record)
-    plateau: int | None = None  # the coarse pilots' plateau once they ran (before: EXPECTED_PLATEAU)
+    plateau: int | None = None  # the coarse pilots' plateau once they ran (before: `expected_plateau`)
+    expected_plateau: int = EXPECTED_PLATEAU  # where they are expected to find it (`plateau_from_hull`)
     pilot_ends: tuple[int, ...] = ()  # where each of those pilots ended, in their order (once they ran)
 
     @property
     def pixels(self) -> int:
         return self.width * self.height
+
+    @property
+    def plateau_or_expected(self) -> int:
+        """The pilots' plateau once they ran, else where they are expected to find it."""
+        return self.expected_plateau if self.plateau is None else self.plateau
 
 
 @dataclass(frozen=True)
@@ -111,15 +123,25 @@ def time_boxed(cfg: Any, seconds: float, planned_seconds: float, headroom: float
     )
 
 
-def expected_iterations(cfg: TrainConfig) -> int:
+def plateau_from_hull(loo_iou: float | None) -> int:
+    """Where the held-out rule's pilots are expected to find the scene's plateau, before they run,
+    from the training photos' leave-one-out silhouette IoU (`HULL_PLATEAU_LINE`); EXPECTED_PLATEAU
+    without one."""
+    if loo_iou is None:
+        return EXPECTED_PLATEAU
+    (x0, y0), (x1, y1) = HULL_PLATEAU_LINE
+    return round(min(max(y0 + (y1 - y0) * (loo_iou - x0) / (x1 - x0), y0), y1))
+
+
+def expected_iterations(cfg: TrainConfig, plateau: int = EXPECTED_PLATEAU) -> int:
     """The iterations a loop is expected to run: up to its `end_iteration` where that is set, all
     of them, or under the held-out stopping rule (`gaussians.stopping`) its margin times the
-    expected plateau."""
+    expected `plateau`."""
     if cfg.end_iteration:
         return min(cfg.end_iteration, cfg.iterations)
     if not isinstance(cfg, StopParams) or cfg.stop != "held-out" or cfg.max_seconds:
         return cfg.iterations
-    return stop_iteration(EXPECTED_PLATEAU, cfg.stop_margin, cfg.stop_min_iterations, cfg.iterations)
+    return stop_iteration(plateau, cfg.stop_margin, cfg.stop_min_iterations, cfg.iterations)
 
 
 def expected_follow_end(cfg: TrainConfig, coarse: TrainConfig, plateau: int | None = None) -> int | None:
@@ -141,18 +163,26 @@ def cover_factor(facts: SceneFacts) -> float:
     return max(MIN_SHARE_FACTOR, 1.0 + MASK_SHARE_SLOPE * (facts.mask_share - FIT_MASK_SHARE))
 
 
-def loop_iterations(cfg: TrainConfig, start: int = 0) -> tuple[float, float]:
+def loop_iterations(cfg: TrainConfig, start: int = 0, plateau: int = EXPECTED_PLATEAU) -> tuple[float, float]:
     """A training loop's expected iterations after `start` (where it carries on from another
-    loop's state): (at half size, those in the first `half_size_until` of the schedule; at full size)."""
-    ends = expected_iterations(cfg)
+    loop's state): (at half size, those in the first `half_size_until` of the schedule; at full
+    size); `plateau`: where the held-out rule is expected to find the scene's."""
+    ends = expected_iterations(cfg, plateau)
     start = min(start, ends)
     half_ends = min(ends, cfg.half_size_until * cfg.iterations)
     return max(half_ends - start, 0), ends - max(half_ends, start)
 
 
-def loop_s(cal: Calibration, cfg: TrainConfig, pixels: float, renders: float = 1.0, start: int = 0) -> float:
+def loop_s(
+    cal: Calibration,
+    cfg: TrainConfig,
+    pixels: float,
+    renders: float = 1.0,
+    start: int = 0,
+    plateau: int = EXPECTED_PLATEAU,
+) -> float:
     """One training loop's modelled seconds (`loop_iterations`)."""
-    half, full = loop_iterations(cfg, start)
+    half, full = loop_iterations(cfg, start, plateau)
     return (half * cal.view_s(pixels / 4) + full * cal.view_s(pixels)) * renders
 
 

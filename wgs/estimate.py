@@ -31,12 +31,12 @@ from .cost import (
     D_STEP_BATCH,
     D_STEP_CHANNELS,
     D_STEP_CROP,
-    EXPECTED_PLATEAU,
     FIT_MASK_SHARE,
     GPU_MAX_SIZE,
     Calibration,
     SceneFacts,
     StageCost,
+    plateau_from_hull,
     time_boxed,
 )
 from .errors import InputError
@@ -384,6 +384,7 @@ class RunTiming:
             has_masks=info["has_masks"],
             posed_by_wgs=info.get("format") == "photos",
             mask_share=(info.get("masks") or {}).get("training_share", FIT_MASK_SHARE),
+            expected_plateau=plateau_from_hull(hull_loo_iou(info)),
         )
         held = ws.run_record()
         cfgs = dict(self.cfgs)
@@ -425,6 +426,7 @@ class RunTiming:
                     "test": facts.n_test,
                     "has_masks": facts.has_masks,
                     "mask_share": facts.mask_share,
+                    "expected_plateau": facts.expected_plateau,
                 },
             )
         elif held.get("estimate"):
@@ -445,9 +447,16 @@ class RunTiming:
         plateau = stop["plateau"]
         facts = dataclasses.replace(self.facts, plateau=plateau, pilot_ends=tuple(stop["pilot_iterations"].values()))
         estimate = per_stage(stage_seconds(self.calibration(), cfgs, facts), left)
-        what = f"estimate of the rest, the {name} pilots' plateau at {plateau} (expected {EXPECTED_PLATEAU})"
+        what = f"estimate of the rest, the {name} pilots' plateau at {plateau} (expected {facts.expected_plateau})"
         log(estimate_line(estimate, what))
         ws.write_run_record({**ws.run_record(), "estimate_after_pilots": estimate})
+
+
+def hull_loo_iou(info: dict[str, Any]) -> float | None:
+    """The training photos' leave-one-out silhouette IoU as prepare's mirror check recorded it
+    (scene.json), with the best mirror plane's images whether or not they were kept: how well
+    the object's hull predicts a photo it was not carved from. None without it (no masks, no check)."""
+    return (info.get("mirror") or {}).get("leave_one_out_iou_mirrored")
 
 
 END_S = 3.0  # what a run takes after its last stage (the summary, the process's end)

@@ -17,8 +17,8 @@ import dataclasses
 import json
 from pathlib import Path
 
-from wgs.cost import FIT_MASK_SHARE, Calibration, SceneFacts
-from wgs.estimate import TRAIN_STAGES, stage_seconds
+from wgs.cost import FIT_MASK_SHARE, Calibration, SceneFacts, plateau_from_hull
+from wgs.estimate import TRAIN_STAGES, hull_loo_iou, stage_seconds
 from wgs.io.images import find_with_stem, read_image, to_mask
 from wgs.scene.prepare import mask_share
 from wgs.stages.registry import REGISTRY
@@ -55,7 +55,16 @@ def one(ws: Workspace, wall: float | None) -> dict:
     sc = run["scene"]
     cfgs = {t: recorded_config(ws, t) for t in TABLES}
     masks = sc.get("has_masks", (ws.manifest("prepare") or {}).get("summary", {}).get("has_masks", True))
-    facts = SceneFacts(sc["width"], sc["height"], sc["train"], sc["test"], has_masks=masks, mask_share=share(ws))
+    info = json.loads((ws.stage_dir("prepare") / "scene.json").read_text())
+    facts = SceneFacts(
+        sc["width"],
+        sc["height"],
+        sc["train"],
+        sc["test"],
+        has_masks=masks,
+        mask_share=share(ws),
+        expected_plateau=plateau_from_hull(hull_loo_iou(info)),
+    )
     now = stage_seconds(cal, cfgs, facts)
     stopping = (ws.manifest("coarse") or {}).get("stopping")
     found = None
