@@ -27,6 +27,8 @@ from wgs.cost import (
 )
 from wgs.errors import InputError
 from wgs.estimate import (
+    CALIBRATION_HISTORY,
+    CALIBRATION_HISTORY_S,
     CALIBRATION_MAX_AGE_S,
     MIN_SIZE,
     RunTiming,
@@ -36,6 +38,7 @@ from wgs.estimate import (
     choose_downscale,
     costs,
     hull_loo_iou,
+    machine_key,
     parse_duration,
     probe_s,
     stage_seconds,
@@ -97,9 +100,32 @@ def test_calibration_made_on_a_busier_machine_is_made_again(tmp_path, monkeypatc
     assert len(calls) == 1
     cached_calibration(cpu, now=1002.0)  # 10 ms now: made again, and its probe recorded
     assert len(calls) == 2
-    assert json.loads((tmp_path / "calibration.json").read_text()).popitem()[1]["probe_s"] == 0.010
+    assert [e["probe_s"] for e in json.loads((tmp_path / "calibration.json").read_text()).popitem()[1]] == [0.010]
     cached_calibration(cpu, now=1003.0)  # busier now (16 ms): the idle calibration is kept
     assert len(calls) == 2
+
+
+def test_the_median_of_the_days_calibrations_times_the_machine(tmp_path, monkeypatch):
+    """One calibration an hour: the estimate uses the median of those of the last day (the newest
+    CALIBRATION_HISTORY), so that one made at a quick moment moves it less; a cache of one record,
+    as older versions wrote it, counts as the first."""
+    monkeypatch.setenv("WGS_CACHE", str(tmp_path))
+    steps = iter([0.100, 0.080, 0.140, 0.110, 0.090, 0.130, 0.120, 0.150])
+    monkeypatch.setattr("wgs.estimate.calibrate", lambda device: dataclasses.replace(CAL, d_step_s=next(steps)))
+    monkeypatch.setattr("wgs.estimate.probe_s", lambda device: 0.010)
+    old = {"made": 0.0, "probe_s": 0.010, "calibration": dataclasses.asdict(dataclasses.replace(CAL, d_step_s=0.5))}
+    (tmp_path / "calibration.json").write_text(json.dumps({machine_key(torch.device("cpu")): old}))
+    cpu, hour = torch.device("cpu"), CALIBRATION_MAX_AGE_S + 1.0
+    got = [cached_calibration(cpu, now=i * hour).d_step_s for i in range(1, 8)]
+    assert got[0] == pytest.approx((0.5 + 0.100) / 2)  # the old record and the first new one
+    assert got[1] == pytest.approx(0.100)  # 0.5, 0.100, 0.080
+    assert got[2] == pytest.approx((0.100 + 0.140) / 2)  # 0.5, 0.100, 0.080, 0.140
+    # five at most: 0.100, 0.080, 0.140, 0.110, 0.090 -> 0.100; then 0.080 ... 0.130 -> 0.110
+    assert got[4:6] == pytest.approx([0.100, 0.110])
+    assert len(json.loads((tmp_path / "calibration.json").read_text()).popitem()[1]) == CALIBRATION_HISTORY
+    # within the hour the held ones are reused; a day later they are forgotten
+    assert cached_calibration(cpu, now=7 * hour + 1.0).d_step_s == got[6]
+    assert cached_calibration(cpu, now=8 * hour + CALIBRATION_HISTORY_S).d_step_s == pytest.approx(0.150)
 
 
 def test_smoke_probe_s_cpu():

@@ -19,6 +19,7 @@ import math
 import os
 import platform
 import re
+import statistics
 import time
 from pathlib import Path
 from typing import Any
@@ -54,11 +55,18 @@ MIN_SIZE = 96  # no working size below this long side (px), whatever the budget
 # planned rate, so that the time, not the caps, ends them even where the calibration was slow
 # (1.5 let a calibration twice too slow end ethiopianHead's 20-minute budget at 0.80 of it)
 HEADROOM = 3.0
-# a calibration is reused by the runs of the next hour on the same machine, device, thread count
-# and versions (a test suite's many small runs, a batch of scenes), from $WGS_CACHE (default ~/.cache/wgs)
+# a new calibration is made once the newest held is this old (a test suite's many small runs, a batch
+# of scenes reuse it); each is held, on the same machine, device, thread count and versions, in
+# $WGS_CACHE (default ~/.cache/wgs)
 CALIBRATION_MAX_AGE_S = 3600.0
-# unless the rasterizer's probe (`probe_s`) now runs this many times as fast as when it was made: it
-# was then made on a busier machine (another run's processes), and would lengthen every estimate
+# the estimate times the machine by the median of its calibrations of the last day, the newest
+# CALIBRATION_HISTORY: a shared machine's speed drifts by more than the estimate's tolerance within
+# hours, and one calibration made at a quick or slow moment would move every estimate of the next hour
+CALIBRATION_HISTORY = 5
+CALIBRATION_HISTORY_S = 86400.0
+# a held calibration is left out where the rasterizer's probe (`probe_s`) now runs this many times as
+# fast as when it was made: it was made on a busier machine (another run's processes), and would
+# lengthen every estimate
 BUSIER_RATIO = 1.25
 PROBE_SIDE = CALIBRATION_SIDES[0]
 FIRST = REGISTRY[0].name  # the stage that reads the scene; the estimate is made after it
@@ -170,35 +178,61 @@ def probe_s(device: torch.device) -> float:
     return float(timed["forward_backward"]["min_s"])
 
 
+def typical(cals: list[Calibration]) -> Calibration:
+    """The median of `cals`' timings, each on its own (threads, device and `seconds` the last one's)."""
+    med = statistics.median
+    return dataclasses.replace(
+        cals[-1],
+        raster=(med(c.raster[0] for c in cals), med(c.raster[1] for c in cals)),
+        d_step_s=med(c.d_step_s for c in cals),
+        d_forward_s_per_pixel=med(c.d_forward_s_per_pixel for c in cals),
+    )
+
+
+def _held(entries: Any, now: float) -> list[dict]:
+    """The well-formed calibration records of the last CALIBRATION_HISTORY_S, oldest first (one
+    record alone, as an older cache held it, counts as a list of one)."""
+    entries = [entries] if isinstance(entries, dict) else entries if isinstance(entries, list) else []
+    out: list[dict[str, Any]] = []
+    for e in entries:
+        try:
+            cal = Calibration(**{**e["calibration"], "raster": tuple(e["calibration"]["raster"])})
+            if 0 <= now - float(e["made"]) <= CALIBRATION_HISTORY_S:
+                out.append({"made": float(e["made"]), "probe_s": float(e["probe_s"]), "calibration": cal})
+        except (KeyError, TypeError, ValueError):
+            continue
+    return sorted(out, key=lambda e: e["made"])[-CALIBRATION_HISTORY:]
+
+
 def cached_calibration(device: torch.device, now: float | None = None) -> Calibration:
-    """`calibrate(device)`, or the calibration of this machine made within CALIBRATION_MAX_AGE_S,
-    unless the probe now runs BUSIER_RATIO times as fast as it did then."""
+    """The `typical` of this machine's calibrations held (`_held`), after a new one (`calibrate`) where
+    the newest is older than CALIBRATION_MAX_AGE_S. Those made on a busier machine (the probe now runs
+    BUSIER_RATIO times as fast as it did then) are left out, and forgotten once a new one is made."""
     path, key, now = cache_dir() / "calibration.json", machine_key(device), time.time() if now is None else now
     probe = probe_s(device)
     try:
-        held = json.loads(path.read_text(encoding="utf-8"))
-        entry = held.get(key) if isinstance(held, dict) else None
-        if entry and 0 <= now - entry["made"] <= CALIBRATION_MAX_AGE_S:
-            if probe * BUSIER_RATIO >= entry["probe_s"]:
-                return Calibration(**{**entry["calibration"], "raster": tuple(entry["calibration"]["raster"])})
-            log(
-                f"calibration: the cached one was made on a busier machine (its probe {entry['probe_s'] * 1e3:.1f} ms,"
-                f" now {probe * 1e3:.1f} ms); timing again"
-            )
-    except (OSError, ValueError, KeyError, TypeError):
-        held = {}
+        cache = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        cache = {}
+    cache = cache if isinstance(cache, dict) else {}
+    held = _held(cache.get(key), now)
+    idle = [e for e in held if probe * BUSIER_RATIO >= e["probe_s"]]
+    if idle and now - idle[-1]["made"] <= CALIBRATION_MAX_AGE_S:
+        return typical([e["calibration"] for e in idle])
+    if held and now - held[-1]["made"] <= CALIBRATION_MAX_AGE_S:
+        log(
+            f"calibration: the cached one was made on a busier machine (its probe {held[-1]['probe_s'] * 1e3:.1f} ms,"
+            f" now {probe * 1e3:.1f} ms); timing again"
+        )
     cal = calibrate(device)
+    idle = [*idle, {"made": now, "probe_s": min(probe, probe_s(device)), "calibration": cal}][-CALIBRATION_HISTORY:]
     try:
-        fresh = {
-            k: v
-            for k, v in (held if isinstance(held, dict) else {}).items()
-            if isinstance(v, dict) and now - v.get("made", 0) <= CALIBRATION_MAX_AGE_S
-        }
-        entry = {"made": now, "probe_s": min(probe, probe_s(device)), "calibration": dataclasses.asdict(cal)}
-        atomic_write_json(path, {**fresh, key: entry})
+        others = {k: v for k, v in cache.items() if k != key and _held(v, now)}
+        records = [{**e, "calibration": dataclasses.asdict(e["calibration"])} for e in idle]
+        atomic_write_json(path, {**others, key: records})
     except OSError:
         pass  # a read-only home: calibrate every run
-    return cal
+    return typical([e["calibration"] for e in idle])
 
 
 def costs(cal: Calibration, cfgs: dict[str, Any], facts: SceneFacts) -> dict[str, tuple[StageCost, float]]:
