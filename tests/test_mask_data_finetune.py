@@ -127,18 +127,3 @@ def test_finetune_needs_mask_data(coarse_ws, tmp_path):
     ws = copy_ws(coarse_ws, tmp_path / "ws")
     res = CliRunner().invoke(cli, ["-w", str(ws.root), "finetune"])
     assert res.exit_code != 0 and "mask-data" in str(res.exception)
-
-
-def test_pairs_until_a_stop_keeps_the_number_of_pairs():
-    """G_d stopped where G_c is (the held-out rule) keeps as many pairs, over the shorter run."""
-    from wgs.stages.mask_data.settings import MaskDataConfig, pair_iterations, pairs_until
-
-    full = MaskDataConfig()
-    assert list(pair_iterations(full)) == list(range(full.warmup, full.iterations + 1, full.pair_every))
-    for stop_at in (1200, 375, 100):
-        cut = pairs_until(full, stop_at)
-        assert cut.end_iteration == stop_at and cut.iterations == full.iterations
-        at = pair_iterations(cut)
-        assert len(at) == len(pair_iterations(full)) and at[-1] <= stop_at and at[0] >= 1
-        assert cut.drift_period == pytest.approx(full.drift_period * stop_at / full.iterations)
-    assert pairs_until(full, full.iterations) == full

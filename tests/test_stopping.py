@@ -140,19 +140,17 @@ def test_coarse_and_fine_stop_where_the_pilots_stopped_gaining_say_why_and_resum
     held out, for its last 10 iterations. Each stage killed in its loop (the coarse stage in that
     member's) resumes to the uninterrupted run's models; `--stop iterations` trains all of G_f's
     iterations. Once the pilots ended the estimate of the rest takes their plateau in place of the
-    expected one: the coarse models (without the pilots), G_d and G_f are modelled at 50
-    iterations. G_d stops at 50 too, with as many pairs as over all its iterations."""
+    expected one: the coarse models (without the pilots) and G_f are modelled at 50 iterations,
+    G_d (all its iterations) as before."""
     scene, base = tiny
     cfg = coarse_cfg(base, "stop.toml", "stop_tolerance_db = 100.0\nstop_min_iterations = 50\n", ensemble=2)
     cfg.write_text(
-        cfg.read_text()
-        .replace(
+        cfg.read_text().replace(
             "[fine]\niterations = 20\nrefine_start = 5\nrefine_every = 5",
             "[fine]\niterations = 120\nrefine_start = 20\nrefine_every = 20",
         )
-        .replace("[mask_data]\niterations = 30", "[mask_data]\niterations = 120")
     )
-    assert "[fine]\niterations = 120" in cfg.read_text() and "[mask_data]\niterations = 120" in cfg.read_text()
+    assert "[fine]\niterations = 120" in cfg.read_text()
     ref = copy_workspace(base / "prepared", tmp_path / "ref")
     proc = subprocess.run(wgs_cmd(ref, cfg, "all", str(scene), quiet=False), capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
@@ -167,12 +165,6 @@ def test_coarse_and_fine_stop_where_the_pilots_stopped_gaining_say_why_and_resum
     assert m["carried_members"] == {"2": photos[0]}
     member = torch.load(ref / "1_coarse/members/ckpt_1.pt", weights_only=True)
     assert member["step"] == 50
-    # G_d stops where G_c does, its pairs' schedule shrunk to the shorter run: as many pairs
-    assert "mask-data: stops at iteration 50 of 120, 3 x 0, where the coarse stage's pilots" in said, said
-    m = json.loads((ref / "2_mask_data/manifest.json").read_text())
-    assert m["iterations"] == 50 and m["stopping"]["stop_at"] == 50
-    snapshots = len(range(10, 121, 10))  # TINY's warm-up and interval over all 120 iterations
-    assert m["num_pairs"] == 4 * snapshots
     assert "fine: stops at iteration 50 of 120, 3 x 0, where the coarse stage's pilots" in said, said
     m = json.loads((ref / "5_fine/manifest.json").read_text())
     assert m["iterations"] == 50 and m["stopping"] == {
@@ -189,8 +181,8 @@ def test_coarse_and_fine_stop_where_the_pilots_stopped_gaining_say_why_and_resum
     record = json.loads((ref / "run.json").read_text())
     before, after = record["estimate"], record["estimate_after_pilots"]
     assert list(after) == list(before)
-    assert all(after[t] < before[t] for t in ("coarse", "mask_data", "fine"))
-    assert all(after[t] == before[t] for t in ("finetune", "repair", "eval"))
+    assert after["coarse"] < before["coarse"] and after["fine"] < before["fine"]
+    assert all(after[t] == before[t] for t in ("mask_data", "finetune", "repair", "eval"))
     coarse = json.loads((ref / "1_coarse/manifest.json").read_text())
     assert 0 < coarse["stopping"]["pilots_s"] < coarse["wall_time_s"]
     report = " ".join((ref / "6_eval/report.md").read_text().split())

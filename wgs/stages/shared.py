@@ -14,7 +14,6 @@ from ..cost import time_boxed
 from ..errors import InputError
 from ..gaussians.init import hull_points, knn_mean_distance, random_init, visual_hull
 from ..gaussians.splats import Splats, create_splats, load_checkpoint
-from ..gaussians.stopping import stop_iteration
 from ..gaussians.trainer import TrainConfig, render_frame
 from ..models.repair import Repairer, load_repairer, repair_image, symmetrized
 from ..progress import log
@@ -58,24 +57,6 @@ def recorded_config(ws, stage: str) -> Any:
     recorded = (ws.manifest(stage) or {}).get("config") or {}
     names = {f.name for f in dataclasses.fields(cls)}
     return cls(**{k: v for k, v in recorded.items() if k in names})
-
-
-def coarse_pilots_stop(ws, cfg: TrainConfig) -> dict[str, Any] | None:
-    """Where a training stage without pilots of its own (G_d, G_f) stops under the held-out rule
-    (its `stop`): the coarse stage's margin times its pilots' plateau (each photo held out in turn,
-    `gaussians.stopping`), of the stage's own iterations. None where either stage's rule is off, a
-    time budget sets the length, or the coarse stage ran no pilots."""
-    coarse = ws.manifest("coarse")
-    found = coarse.get("stopping") if coarse is not None else None
-    if getattr(cfg, "stop", None) != "held-out" or cfg.max_seconds or coarse is None or not found:
-        return None
-    c = coarse["config"]  # the coarse stage's StopParams
-    return {
-        "rule": "coarse pilots",
-        "plateau": found["plateau"],
-        "margin": c["stop_margin"],
-        "stop_at": stop_iteration(found["plateau"], c["stop_margin"], c["stop_min_iterations"], cfg.iterations),
-    }
 
 
 def background_for(scene: PreparedScene) -> torch.Tensor:

@@ -10,6 +10,7 @@ import torch
 from ...curves import test_probe, write_curve
 from ...errors import InputError
 from ...gaussians.splats import VIEWER_SH_DEGREE, Splats, export_ply, load_checkpoint, save_checkpoint, to_world
+from ...gaussians.stopping import stop_iteration
 from ...gaussians.trainer import PseudoViews, train_gaussians
 from ...io import read_json
 from ...io.exr import read_subbands
@@ -20,7 +21,7 @@ from ...scene.dataset import Frame, PreparedScene, load_prepared
 from ...shape.hull import load_grid
 from ...shape.scores import HULL_CUT_LIMIT, hull_cut
 from ...workspace import StageRun, Workspace
-from ..shared import background_for, coarse_pilots_stop, ensemble_repair, initial_splats, workspace_repairer
+from ..shared import background_for, ensemble_repair, initial_splats, workspace_repairer
 from ..stage import StageEnv
 from .settings import FineConfig
 
@@ -150,10 +151,27 @@ def fine_inputs(ws: Workspace, cfg: FineConfig, device: torch.device, seed: int)
     return FineInputs(scene, splats, start, frames, weights, background_for(scene), lpips_fn, lpips_term)
 
 
+def held_out_stop(ws: Workspace, cfg: FineConfig) -> dict | None:
+    """Where G_f stops under the held-out rule: the coarse stage's margin times its pilots' plateau
+    (each photo held out in turn, `gaussians.stopping`), of G_f's own iterations. The fine stage
+    has no pilots of its own: a photo held out of it is learnt back from the pseudo references,
+    which G_c made having seen it (docs/what-we-tried.md). None where either stage's rule is off
+    or a time budget sets the length."""
+    coarse = ws.manifest("coarse")
+    found = coarse.get("stopping") if coarse is not None else None
+    if cfg.stop != "held-out" or cfg.max_seconds or coarse is None or not found:
+        return None
+    c = coarse["config"]  # the coarse stage's StopParams
+    return {
+        "rule": "coarse pilots",
+        "plateau": found["plateau"],
+        "margin": c["stop_margin"],
+        "stop_at": stop_iteration(found["plateau"], c["stop_margin"], c["stop_min_iterations"], cfg.iterations),
+    }
+
+
 def train_fine(run: StageRun, ws: Workspace, cfg: FineConfig, device: torch.device, seed: int) -> str:
-    # G_f has no pilots of its own: a photo held out of it is learnt back from the pseudo references,
-    # which G_c made having seen it (docs/what-we-tried.md)
-    stop = coarse_pilots_stop(ws, cfg)
+    stop = held_out_stop(ws, cfg)
     if stop is not None:
         cfg = dataclasses.replace(cfg, end_iteration=stop["stop_at"])
         log(

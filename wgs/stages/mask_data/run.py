@@ -21,12 +21,11 @@ from ...gaussians.trainer import render_frame, train_gaussians
 from ...io import atomic_write_json, read_json
 from ...io.exr import write_subbands
 from ...masking import make_region_masks
-from ...progress import log
 from ...scene.dataset import PreparedScene, composite, load_prepared
 from ...workspace import StageRun, Workspace
-from ..shared import background_for, coarse_pilots_stop, initial_splats, subband_file, subbands_hwc
+from ..shared import background_for, initial_splats, subband_file, subbands_hwc
 from ..stage import StageEnv
-from .settings import MaskDataConfig, pair_iterations, pairs_until
+from .settings import MaskDataConfig
 
 
 class PairWriter:
@@ -92,10 +91,8 @@ def run_orm(
     def weights(i: int, it: int) -> torch.Tensor:
         return (1.0 - regions.hidden(i, it)).to(device)
 
-    pairs_at = pair_iterations(cfg)
-
     def snapshot(it: int, params: Splats) -> None:
-        if it in pairs_at:
+        if it >= cfg.warmup and it % cfg.pair_every == 0:
             for v, f in enumerate(scene.train):
                 if f.shows_colour:
                     writer.write(params, v, it, regions.hidden(v, it), "gd")
@@ -120,13 +117,12 @@ def run_loo(
     cfg: MaskDataConfig, scene: PreparedScene, device: torch.device, seed: int, writer: PairWriter
 ) -> dict[str, Any]:
     left_outs = [i for i, f in enumerate(scene.train) if f.shows_colour]  # outline-only views make no pairs
-    pairs_at = pair_iterations(cfg)
     for k, left_out in enumerate(left_outs):
         keep = [f for i, f in enumerate(scene.train) if i != left_out]
         sub = PreparedScene(scene.info, scene.norm, keep, [])
 
         def snapshot(it: int, params: Splats, v: int = left_out) -> None:
-            if it in pairs_at:
+            if it >= cfg.warmup and it % cfg.pair_every == 0:
                 writer.write(params, v, it, None, f"loo{v}")
 
         train_gaussians(
@@ -141,10 +137,7 @@ def run_loo(
             on_step=snapshot,
             checkpoint=writer.run.checkpointer(f"loo{left_out}"),
         )
-    return {
-        "models": len(left_outs),
-        "iterations": min(cfg.end_iteration or cfg.iterations, cfg.iterations) * len(left_outs),
-    }
+    return {"models": len(left_outs), "iterations": cfg.iterations * len(left_outs)}
 
 
 def hf_views(ws: Workspace, scene: PreparedScene) -> list[str]:
@@ -164,14 +157,6 @@ def run_mask_data(ws: Workspace, cfg: MaskDataConfig, env: StageEnv, force: bool
 
 def make_pairs(run: StageRun, ws: Workspace, cfg: MaskDataConfig, device: torch.device, seed: int) -> str:
     scene = load_prepared(ws.output("prepare", "prepared"))
-    stop = coarse_pilots_stop(ws, cfg)
-    if stop is not None and stop["stop_at"] < cfg.iterations:
-        cfg = pairs_until(cfg, stop["stop_at"])
-        log(
-            f"mask-data: stops at iteration {stop['stop_at']} of {cfg.iterations}, {stop['margin']:g} x "
-            f"{stop['plateau']}, where the coarse stage's pilots stopped gaining; pairs from iteration "
-            f"{cfg.warmup}, every {cfg.pair_every}"
-        )
     torch.manual_seed(seed)
     writer = PairWriter(run, scene, device, cfg.strategy)
     t0 = time.perf_counter()
@@ -183,8 +168,6 @@ def make_pairs(run: StageRun, ws: Workspace, cfg: MaskDataConfig, device: torch.
     run.record.update(
         {"strategy": cfg.strategy, "num_pairs": len(writer.pairs), "strategy_seconds": round(seconds, 2), **stats}
     )
-    if stop is not None:
-        run.record["stopping"] = stop
     return f"mask-data: {cfg.strategy}, {len(writer.pairs)} pairs from {stats['models']} model(s) in {seconds:.1f} s"
 
 

@@ -2,14 +2,12 @@
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from ...cost import Calibration, SceneFacts, StageCost, cover_factor, expected_follow_end, loop_s
+from ...cost import Calibration, SceneFacts, StageCost, cover_factor, loop_s
 from ...fields import option
-from ...gaussians.stopping import StopRule
 from ...gaussians.trainer import TrainConfig
 from ..stage import FAST_TRAINING, Stage, StageEnv
 
@@ -18,10 +16,8 @@ FACTOR = 0.92  # time / modelled work on whole runs: lego at 200 px and ethiopia
 
 
 @dataclass
-class MaskDataConfig(StopRule, TrainConfig):
-    """Training of G_d (or the N leave-one-out models) and the corrupted/clean pairs it yields; under
-    the held-out rule (`stop`) they stop where G_c does, the coarse stage's margin times its pilots'
-    plateau (`pairs_until`)."""
+class MaskDataConfig(TrainConfig):
+    """Training of G_d (or the N leave-one-out models) and the corrupted/clean pairs it yields."""
 
     iterations: int = 1500
     strategy: str = option(
@@ -38,27 +34,6 @@ class MaskDataConfig(StopRule, TrainConfig):
     half_size_until: float = 0.3
 
 
-def pair_iterations(cfg: MaskDataConfig) -> range:
-    """The iterations whose renders make pairs: each `pair_every`-th from `warmup` on, to the end."""
-    last = min(cfg.end_iteration or cfg.iterations, cfg.iterations)
-    first = -(-max(cfg.warmup, 1) // cfg.pair_every) * cfg.pair_every
-    return range(first, last + 1, cfg.pair_every)
-
-
-def pairs_until(cfg: MaskDataConfig, stop_at: int) -> MaskDataConfig:
-    """`cfg` ending at iteration `stop_at`, with the pairs' interval and the masks' drift period
-    shrunk by the same share and as many pairs, the last at the stop: pairs from a model stopped
-    where G_c is (the repair learns the corruptions of a model trained that long)."""
-    if stop_at >= cfg.iterations:
-        return cfg
-    share = stop_at / cfg.iterations
-    every = max(1, round(cfg.pair_every * share))
-    first = max(every, (stop_at // every - len(pair_iterations(cfg)) + 1) * every)
-    return dataclasses.replace(
-        cfg, end_iteration=stop_at, warmup=first, pair_every=every, drift_period=cfg.drift_period * share
-    )
-
-
 def run(ws: Any, cfg: MaskDataConfig, env: StageEnv, force: bool) -> bool:
     from .run import run_mask_data  # on first use: the stage loads the library
 
@@ -68,8 +43,6 @@ def run(ws: Any, cfg: MaskDataConfig, env: StageEnv, force: bool) -> bool:
 def cost(cal: Calibration, cfgs: Mapping[str, Any], facts: SceneFacts, before: Mapping[str, float]) -> StageCost:
     """G_d, or one model per training view leaving it out (loo)."""
     cfg: MaskDataConfig = cfgs["mask_data"]
-    end = expected_follow_end(cfg, cfgs["coarse"], facts.plateau_or_expected)
-    cfg = pairs_until(cfg, end) if end is not None else cfg
     return StageCost(
         fixed_steps=15,
         loops=facts.n_train if cfg.strategy == "loo" else 1,
