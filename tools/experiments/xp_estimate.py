@@ -8,8 +8,11 @@ queue writes them) also the whole command's wall time. And once the coarse stage
 the model's estimate of the rest (the coarse models, then the stages after them) with the plateau
 the pilots found (`RunTiming.after_pilots`, which `wgs all` prints then; where the run recorded
 it, the one printed) against the time they took (the coarse stage's less its pilots').
+With `--calibration-of WS` (repeated) the model times the machine by the median of those
+workspaces' recorded calibrations (`estimate.typical`, as `wgs` does with its day's
+calibrations) in place of each run's own.
 
-    python xp_estimate.py [--times TIMES] WORKSPACE...
+    python xp_estimate.py [--times TIMES] [--calibration-of WS ...] WORKSPACE...
 """
 
 import argparse
@@ -18,7 +21,7 @@ import json
 from pathlib import Path
 
 from wgs.cost import FIT_MASK_SHARE, Calibration, SceneFacts, plateau_from_hull
-from wgs.estimate import TRAIN_STAGES, hull_loo_iou, stage_seconds
+from wgs.estimate import TRAIN_STAGES, hull_loo_iou, stage_seconds, typical
 from wgs.io.images import find_with_stem, read_image, to_mask
 from wgs.scene.prepare import mask_share
 from wgs.stages.registry import REGISTRY
@@ -42,16 +45,22 @@ def share(ws: Workspace) -> float:
     return mask_share([to_mask(read_image(p)) for p in found if p is not None])
 
 
-def one(ws: Workspace, wall: float | None) -> dict:
-    run = ws.run_record()
-    cal = run["calibration"]
+def recorded_calibration(ws: Workspace) -> Calibration:
+    """The calibration `ws`'s run recorded."""
+    cal = ws.run_record()["calibration"]
     if "raster_all" in cal:  # a calibration of the rasterizer alone: the loss's time added (2-core CPU, quiet)
         loss = LOSS_2_CORES
         cal = {
             **{k: v for k, v in cal.items() if k not in ("raster_all", "raster_one")},
             "raster": (cal["raster_all"][0] + loss[0], cal["raster_all"][1] + loss[1]),
         }
-    cal = Calibration(**{**cal, "raster": tuple(cal["raster"])})
+    return Calibration(**{**cal, "raster": tuple(cal["raster"])})
+
+
+def one(ws: Workspace, wall: float | None, cal: Calibration | None = None) -> dict:
+    """`ws`'s run timed against the model, with `cal` in place of its own calibration if given."""
+    run = ws.run_record()
+    cal = cal or recorded_calibration(ws)
     sc = run["scene"]
     cfgs = {t: recorded_config(ws, t) for t in TABLES}
     masks = sc.get("has_masks", (ws.manifest("prepare") or {}).get("summary", {}).get("has_masks", True))
@@ -125,13 +134,15 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("workspaces", nargs="+", type=Path)
     ap.add_argument("--times", type=Path)
+    ap.add_argument("--calibration-of", type=Path, action="append", default=[])
     a = ap.parse_args()
+    cal = typical([recorded_calibration(Workspace(p)) for p in a.calibration_of]) if a.calibration_of else None
     walls = {}
     if a.times and a.times.is_file():
         for line in a.times.read_text().splitlines():
             name, _, wall = line.split()
             walls[name] = float(wall.split("=")[1])
-    rows = [one(Workspace(p), walls.get(p.name)) for p in a.workspaces]
+    rows = [one(Workspace(p), walls.get(p.name), cal) for p in a.workspaces]
     print(
         "| workspace | size | budget (s) | estimate printed (s) | model now (s) | the stages took (s) | "
         "printed / took | now / took | prepare (s) | `wgs all` wall (s) | (prepare + printed) / wall |"
