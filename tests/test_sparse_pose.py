@@ -19,6 +19,11 @@ from wgs.scene.pose_error import pose_errors
 from wgs.scene.sfm import MATCHERS, find_photos, pose_photos
 from wgs.stages.prepare.settings import PrepareConfig
 
+# learned features at a long side of 768 px: the default (1024) enlarges these 320x240 photos
+# further and takes twice the time (`prepare.match_side`)
+SIDE = 768
+SMALL = f"[prepare]\nmatch_side = {SIDE}\n"
+
 
 def test_matcher_choices_are_the_config_fields():
     assert MATCHERS == facts(PrepareConfig, "matcher")["choices"]
@@ -36,7 +41,7 @@ def test_four_photos_45_degrees_apart_are_posed_offline(tmp_path, monkeypatch):
     monkeypatch.setattr(socket.socket, "connect", no_network)
     monkeypatch.setattr(socket, "create_connection", no_network)
     image_dir, names, mask_dir = find_photos(tmp_path / "p")
-    res = pose_photos(image_dir, names, mask_dir, tmp_path / "model", "auto", 1600)
+    res = pose_photos(image_dir, names, mask_dir, tmp_path / "model", "auto", 1600, match_side=SIDE)
     assert res.matcher == "learned" and res.registered == 4
     posed = {
         v.name: v.w2c for v in read_colmap_scene(tmp_path / "p", tmp_path / "model", image_dir, fmt="photos").views
@@ -61,7 +66,7 @@ def test_a_photo_stored_turned_is_matched_turned_and_posed(tmp_path, capsys, mon
     image_dir, names, mask_dir = find_photos(tmp_path / "p")
     monkeypatch.setattr(progress, "_quiet", False)  # an earlier `wgs -q` in this worker set it
     monkeypatch.setattr(progress.console, "quiet", False)
-    res = pose_photos(image_dir, names, mask_dir, tmp_path / "model", "auto", 1600)
+    res = pose_photos(image_dir, names, mask_dir, tmp_path / "model", "auto", 1600, match_side=SIDE)
     assert "photo_001.png matches the others turned by 90 degrees" in " ".join(capsys.readouterr().err.split())
     assert res.registered == 4
     posed = {
@@ -84,7 +89,14 @@ def test_two_objects_are_refused_naming_the_photos(tmp_path):
                 (scene / sub).mkdir(parents=True, exist_ok=True)
                 p.rename(scene / sub / f"{tag}_{p.name}")
     ws = tmp_path / "ws"
-    line = expect_error(tmp_path, ["-w", ws, "prepare", scene], "pose together", "share too little", "a_photo_000.png")
+    (tmp_path / "small.toml").write_text(SMALL)
+    line = expect_error(
+        tmp_path,
+        ["--config", tmp_path / "small.toml", "-w", ws, "prepare", scene],
+        "pose together",
+        "share too little",
+        "a_photo_000.png",
+    )
     assert "b_photo_000.png" in line
     assert not (ws / "sfm").exists() and not (ws / "scene").exists()
 
@@ -96,7 +108,7 @@ def test_three_that_pose_are_kept_and_the_fourth_is_named(tmp_path):
     from conftest import run_cli
 
     make_photos(tmp_path / "p", n=4, azimuths=[0, 30, 60, 200])
-    (tmp_path / "short.toml").write_text('[prepare]\ncamera_iterations = 40\nmirror = "none"\n')
+    (tmp_path / "short.toml").write_text(SMALL + 'camera_iterations = 40\nmirror = "none"\n')
     proc = run_cli(["--config", tmp_path / "short.toml", "-w", tmp_path / "ws", "prepare", tmp_path / "p"], tmp_path)
     assert proc.returncode == 0, proc.stderr
     err = " ".join(proc.stderr.split())
@@ -117,7 +129,13 @@ def test_photos_170_degrees_apart_are_refused_naming_them(tmp_path):
     (45-60 of them pass two-view verification, on like-looking parts) once placed it 55 degrees
     from the pair, against 150-170 in truth. LightGlue is sure of too few of them: it is refused."""
     make_photos(tmp_path / "p", n=3, azimuths=[0, 20, 170])
-    line = expect_error(tmp_path, ["-w", tmp_path / "ws", "prepare", tmp_path / "p"], "pose together", "photo_002.png")
+    (tmp_path / "small.toml").write_text(SMALL)
+    line = expect_error(
+        tmp_path,
+        ["--config", tmp_path / "small.toml", "-w", tmp_path / "ws", "prepare", tmp_path / "p"],
+        "pose together",
+        "photo_002.png",
+    )
     assert "one more photo between photo_001.png and photo_002.png" in line
     assert not (tmp_path / "ws" / "scene").exists()
 

@@ -26,6 +26,7 @@ from scipy.ndimage import binary_dilation
 from ..errors import InputError
 from ..io.images import IMAGE_EXTS, find_with_stem, image_size, read_image, to_mask, write_png
 from ..progress import BAR, log, progress_bar
+from .learned_matching import MATCH_SIDE
 from .native_colmap import pycolmap
 
 MATCHERS = ("auto", "learned", "exhaustive", "sequential")  # as PrepareConfig.matcher's choices (a test checks)
@@ -143,11 +144,13 @@ def pose_photos(
     max_image_size: int,
     threads: int = 1,
     focal: float | None = None,
+    match_side: int = MATCH_SIDE,
 ) -> SfmResult:
     """Run structure-from-motion on `names` in `image_dir`; the largest model goes to `out/`
     (written whole or not at all). `matcher`: auto (learned matching up to SPARSE_UP_TO photos,
     or where SIFT registers too few of up to LEARNED_FALLBACK_UP_TO; SIFT otherwise), learned,
-    exhaustive or sequential (SIFT); SIFT runs on the photos downscaled to `max_image_size`.
+    exhaustive or sequential (SIFT); SIFT runs on the photos downscaled to `max_image_size`, the
+    learned features on the photos resized to a long side of `match_side`.
     `focal`: the focal length in pixels of the full photos where it is known (kept fixed).
     Raises InputError when too few photos pose together; leaves out, with one line each, the
     photos that do not join the others."""
@@ -161,13 +164,13 @@ def pose_photos(
     if chosen:
         matcher = "learned" if n <= SPARSE_UP_TO else "exhaustive" if n <= EXHAUSTIVE_UP_TO else "sequential"
     try:
-        best = _map_photos(image_dir, names, mask_dir, out, matcher, max_image_size, threads, focal)
+        best = _map_photos(image_dir, names, mask_dir, out, matcher, max_image_size, threads, focal, match_side)
     except InputError:
         if not chosen or matcher == "learned" or n > LEARNED_FALLBACK_UP_TO:
             raise
         log(f"sfm: SIFT registered too few of {n} photos; trying the learned matcher")
         matcher = "learned"
-        best = _map_photos(image_dir, names, mask_dir, out, matcher, max_image_size, threads, focal)
+        best = _map_photos(image_dir, names, mask_dir, out, matcher, max_image_size, threads, focal, match_side)
     seconds = time.perf_counter() - t0
     log(f"sfm: {best} of {n} photos registered ({matcher} matching) in {seconds:.1f} s")
     return SfmResult(out, best, n, seconds, matcher)
@@ -182,6 +185,7 @@ def _map_photos(
     max_image_size: int,
     threads: int,
     focal: float | None,
+    match_side: int,
 ) -> int:
     """Features, matches and incremental mapping in a staging folder; the largest model moves to
     `out`. Returns how many photos it registered."""
@@ -204,7 +208,7 @@ def _map_photos(
             reader.camera_params = f"{focal},{w / 2},{h / 2}" + (",0" if reader.camera_model == "SIMPLE_RADIAL" else "")
         with _colmap_quiet():
             if matcher == "learned":
-                verified = _learned_database(db, image_dir, names, mask_dir, reader, camera_mode)
+                verified = _learned_database(db, image_dir, names, mask_dir, reader, camera_mode, match_side)
             else:
                 _sift_database(
                     db, image_dir, names, mask_dir, tmp, reader, camera_mode, matcher, max_image_size, threads
@@ -305,9 +309,10 @@ def verification_options(sparse: bool = False):
 
 
 def _learned_database(
-    db: Path, image_dir: Path, names: list[str], mask_dir: Path | None, reader, camera_mode
+    db: Path, image_dir: Path, names: list[str], mask_dir: Path | None, reader, camera_mode, side: int
 ) -> dict[tuple[str, str], int]:
-    """Learned features (`learned_matching`, inside the grown masks) of every photo and matches of
+    """Learned features (`learned_matching`, inside the grown masks, the photo at a long side of
+    `side`) of every photo and matches of
     every pair into `db`, then COLMAP's two-view geometric verification. Returns each pair's
     verified matches."""
     from . import learned_matching as lm
@@ -318,7 +323,7 @@ def _learned_database(
     features = []
     with progress_bar("sfm: learned features", len(names)) as prog:
         for name in names:
-            features.append(lm.extract(_rgb(read_image(image_dir / name)), masks.get(name)))
+            features.append(lm.extract(_rgb(read_image(image_dir / name)), masks.get(name), side))
             prog.advance(BAR)
     pairs = list(itertools.combinations(range(len(names)), 2))
     found: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
@@ -326,7 +331,7 @@ def _learned_database(
         for i, j in pairs:
             found[(i, j)] = lm.match(features[i], features[j])
             prog.advance(BAR)
-    turns = _turned_photos(image_dir, names, masks, features, found)
+    turns = _turned_photos(image_dir, names, masks, features, found, side)
     database = pycolmap.Database.open(db)
     try:
         ids = {im.name: im.image_id for im in database.read_all_images()}
@@ -363,6 +368,7 @@ def _turned_photos(
     masks: dict[str, np.ndarray],
     features: list,
     found: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]],
+    side: int,
 ) -> list[int]:
     """Photos stored turned against the others (a phone held the other way, whose EXIF orientation
     nothing here applies): the learned features are not rotation invariant. The photos joined by
@@ -404,7 +410,9 @@ def _turned_photos(
                 features[i]
                 if k == 0
                 else lm.extract(
-                    np.rot90(_rgb(read_image(image_dir / names[i])), k), None if mask is None else np.rot90(mask, k)
+                    np.rot90(_rgb(read_image(image_dir / names[i])), k),
+                    None if mask is None else np.rot90(mask, k),
+                    side,
                 )
             )
         return candidates[(i, k)]

@@ -8,6 +8,7 @@ from typing import Any
 
 from ...cost import CPU_TARGET_S, GPU_MAX_SIZE, Calibration, SceneFacts, StageCost
 from ...fields import option
+from ...scene.learned_matching import MATCH_SIDE
 from ...segment.accept import MaskParams
 from ..stage import Stage, StageEnv
 
@@ -63,6 +64,8 @@ class PrepareConfig(MaskParams):
         bounds=(1, 179),
     )
     sfm_max_image_size: int = 1600  # SIFT on photos downscaled to this longest side
+    # learned matching on photos resized to this long side (px; smaller photos are enlarged to it)
+    match_side: int = option(MATCH_SIDE, bounds=(64, None))
     # photos wgs posed from a few views (learned matching), with masks of their own: the cameras
     # corrected by training one coarse model on the photos (wgs.gaussians.pose_refine), and
     # kept unless the hull of the other photos then leaves out more of each photo's mask
