@@ -502,3 +502,34 @@ def test_working_size_counts_the_baseline_when_asked():
     k_alone, _ = choose_downscale(CAL, configs(), facts, 600.0)
     k_both, total = choose_downscale(CAL, configs(), facts, 600.0, (*STAGES, "baseline"))
     assert k_both >= k_alone and total is not None
+
+
+def test_the_estimate_counts_the_stages_a_change_makes_stale_downstream(finished_workspace, tmp_path, monkeypatch):
+    """A finished run: with finetune's config changed, the estimate counts finetune and every stage
+    that reads it (repair, fine, eval), not finetune alone; with the scene re-imported (the coarse
+    stage's recorded input no longer the scene's), every stage after prepare."""
+    import shutil
+
+    from wgs.workspace import Workspace
+
+    monkeypatch.setattr("wgs.estimate.cached_calibration", lambda device: CAL)
+    shutil.copytree(finished_workspace[0] / "ws", tmp_path / "ws")
+    ws = Workspace(tmp_path / "ws")
+    info = json.loads((ws.root / "scene" / "scene.json").read_text())
+    runs = ("prepare", "coarse", "mask_data", "finetune", "repair", "fine", "eval")
+
+    def pending() -> tuple[str, ...]:
+        timing = RunTiming(torch.device("cpu"), configs())
+        timing.after_prepare(ws, info, runs)
+        return timing.pending
+
+    monkeypatch.setattr("wgs.estimate._fresh", lambda ws, table, cfg, fields=None: table != "finetune")
+    assert pending() == ("finetune", "repair", "fine", "eval")
+    assert set(json.loads((ws.root / "run.json").read_text())["estimate"]) == {"finetune", "repair", "fine", "eval"}
+    monkeypatch.setattr("wgs.estimate._fresh", lambda ws, table, cfg, fields=None: True)
+    assert pending() == ()
+    manifest = ws.stage_dir("coarse") / "manifest.json"
+    m = json.loads(manifest.read_text())
+    m["upstream"]["prepare"] = "an earlier import"
+    manifest.write_text(json.dumps(m))
+    assert pending() == runs[1:]

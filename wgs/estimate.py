@@ -46,7 +46,7 @@ from .io import atomic_write_json
 from .progress import log
 from .scene.prepare import downscale_for
 from .stages.registry import REGISTRY, UNASKED
-from .workspace import Workspace, fingerprint
+from .workspace import UPSTREAM, Workspace, fingerprint
 
 CALIBRATION_SIDES = (128, 256)  # square views the rasterizer is timed at
 CALIBRATION_GAUSSIANS = 8000  # about a 4-view model's size at 200 px
@@ -442,7 +442,7 @@ class RunTiming:
                 + ", ".join(f"{t.replace('_', '-')} {minutes(s)}" for t, s in plan["seconds"].items() if t in runs)
                 + " (the training stages time-boxed)"
             )
-        pending = tuple(t for t in runs if t != FIRST and not _fresh(ws, t, cfgs[t]))
+        pending = _pending(ws, runs, cfgs)
         self.facts, self.pending = facts, pending
         record: dict[str, Any] = {"budget_s": self.budget_s, "plan": plan}
         if pending:
@@ -499,6 +499,20 @@ BOXED_FIELDS = ("iterations", "refine_stop", "max_seconds")
 
 def _boxed_fields(cfg: TrainConfig) -> dict[str, Any]:
     return {f: getattr(cfg, f) for f in BOXED_FIELDS}
+
+
+def _pending(ws: Workspace, runs: tuple[str, ...], cfgs: dict[str, Any]) -> tuple[str, ...]:
+    """The stages of `runs` (in the registry's order) after the first that `wgs all` will run: those
+    not finished with their config, those whose inputs changed since they ran, and every stage that
+    reads one of these."""
+    pending: list[str] = []
+    for t in runs:
+        if t == FIRST:
+            continue
+        inputs_changed = (ws.manifest(t) or {}).get("upstream") != ws.upstream_fingerprints(t)
+        if not _fresh(ws, t, cfgs[t]) or inputs_changed or set(UPSTREAM[t]) & set(pending):
+            pending.append(t)
+    return tuple(pending)
 
 
 def _fresh(ws: Workspace, table: str, cfg: Any, fields: dict[str, Any] | None = None) -> bool:

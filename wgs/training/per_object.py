@@ -179,7 +179,14 @@ def finetune_prior_d(
         )
     meta.prior = str(prior)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.prior_lr, weight_decay=0.0)
-    plan = FitPlan(cfg.prior_steps, cfg.prior_lr, cfg.prior_eval_every, patience=cfg.prior_patience, keep_best=True)
+    plan = FitPlan(
+        cfg.prior_steps,
+        cfg.prior_lr,
+        cfg.prior_eval_every,
+        patience=cfg.prior_patience,
+        keep_best=True,
+        min_gain=cfg.prior_min_gain,
+    )
 
     batch = d_batches(cfg, clean, bad, device, gen)
 

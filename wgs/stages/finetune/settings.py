@@ -52,7 +52,9 @@ class FinetuneConfig:
     )
     prior_lr: float = 5e-5
     prior_eval_every: int = 25
-    prior_patience: int = 4
+    prior_patience: int = 4  # held-out checks that do not beat the best before D stops
+    # a check beats the best only by lowering its held-out MSE by more than this share of it
+    prior_min_gain: float = option(0.0, bounds=(0.0, 1.0))
     train_timesteps: int = 1000
     d_channels: int = 32  # base width; the U-Net uses (c, 2c, 2c)
     d_steps: int = option(1500, "Training steps of D.")
