@@ -312,9 +312,8 @@ def _learned_database(
     db: Path, image_dir: Path, names: list[str], mask_dir: Path | None, reader, camera_mode, side: int
 ) -> dict[tuple[str, str], int]:
     """Learned features (`learned_matching`, inside the grown masks, the photo at a long side of
-    `side`) of every photo and matches of
-    every pair into `db`, then COLMAP's two-view geometric verification. Returns each pair's
-    verified matches."""
+    `side`) of every photo and matches of every pair into `db`, then COLMAP's two-view geometric
+    verification. Returns each pair's verified matches."""
     from . import learned_matching as lm
 
     pycolmap.Database.open(db).close()  # created empty: import_images fills it
