@@ -68,7 +68,9 @@ def _build_models() -> tuple[torch.nn.Module, torch.nn.Module]:
     folder = weights_dir()
     extractor = kf.ALIKED("aliked-n16", max_num_keypoints=TOP_K, detection_threshold=DETECTION_THRESHOLD)
     extractor.load_state_dict(torch.load(folder / EXTRACTOR, map_location="cpu", weights_only=True), strict=False)
-    matcher = kf.LightGlue(None, input_dim=128, n_layers=LIGHTGLUE_LAYERS)  # type: ignore[arg-type]  # None: no download
+    # no features' name: LightGlue then downloads nothing (kornia types it as a str before 0.9.2)
+    no_download: Any = None
+    matcher = kf.LightGlue(no_download, input_dim=128, n_layers=LIGHTGLUE_LAYERS)
     matcher.load_state_dict(torch.load(folder / MATCHER, map_location="cpu", weights_only=True), strict=False)
     for layer in matcher.transformers:
         cross: Any = layer.cross_attn  # kornia's CrossBlock
@@ -83,18 +85,20 @@ def fused_cross_attention(
     block: Any, x0: torch.Tensor, x1: torch.Tensor, mask: torch.Tensor | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """kornia's `CrossBlock.forward` (LightGlue's cross-attention: each photo's keypoints attend to
-    the other's) with both directions by `scaled_dot_product_attention`. kornia fuses them on CUDA
-    only; on the CPU it holds the [B, heads, M, N] similarities and two softmaxes of them, about half
-    of the matching time. x0 [B, M, D], x1 [B, N, D] -> the same shapes. kornia's own forward is the
-    reference (tests/test_learned_matching.py) and runs where a mask is given."""
+    the other's) with both directions by `scaled_dot_product_attention`. kornia 0.9.0-0.9.1 fuse them
+    on CUDA only; on the CPU they hold the [B, heads, M, N] similarities and two softmaxes of them,
+    about half of the matching time (kornia 0.9.2 runs the same fused attention itself).
+    x0 [B, M, D], x1 [B, N, D] -> the same shapes. kornia's own forward is the reference
+    (tests/test_learned_matching.py) and runs where a mask is given."""
     if mask is not None:
         return type(block).forward(block, x0, x1, mask)
     qk0, qk1, v0, v1 = (
         t.unflatten(-1, (block.heads, -1)).transpose(1, 2)
         for t in (block.to_qk(x0), block.to_qk(x1), block.to_v(x0), block.to_v(x1))
     )
-    m0 = F.scaled_dot_product_attention(qk0, qk1, v1, scale=block.scale)
-    m1 = F.scaled_dot_product_attention(qk1, qk0, v0, scale=block.scale)
+    # the default scale, 1 / sqrt(head width), is kornia's (0.9.0-0.9.1 keep it as `block.scale`)
+    m0 = F.scaled_dot_product_attention(qk0, qk1, v1)
+    m1 = F.scaled_dot_product_attention(qk1, qk0, v0)
     m0, m1 = (block.to_out(m.transpose(1, 2).flatten(start_dim=-2)) for m in (m0, m1))
     return x0 + block.ffn(torch.cat([x0, m0], -1)), x1 + block.ffn(torch.cat([x1, m1], -1))
 
