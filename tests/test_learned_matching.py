@@ -1,5 +1,6 @@
 """LightGlue's cross-attention fused on the CPU (`learned_matching.fused_cross_attention`) against
-kornia's own forward, on a tiny block with random weights; ALIKED channels-last against contiguous."""
+kornia's own forward, on a tiny block with random weights, and put in where kornia does not fuse it
+itself; ALIKED channels-last against contiguous."""
 
 import numpy as np
 import pytest
@@ -47,6 +48,15 @@ def test_gradcheck_float64():
     x0 = torch.randn(1, 3, 16, dtype=torch.float64, requires_grad=True)
     x1 = torch.randn(1, 4, 16, dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(lambda a, b: fused_cross_attention(block, a, b), (x0, x1))
+
+
+def test_the_fused_attention_goes_where_kornia_does_not_fuse_it():
+    from wgs.scene import learned_matching as lm
+
+    _, matcher = lm._models()
+    for layer in matcher.transformers:
+        patched = "forward" in vars(layer.cross_attn)
+        assert patched != lm.kornia_fuses(layer.cross_attn)
 
 
 def test_channels_last_extraction_finds_the_contiguous_models_keypoints():

@@ -74,11 +74,19 @@ def _build_models() -> tuple[torch.nn.Module, torch.nn.Module]:
     matcher.load_state_dict(torch.load(folder / MATCHER, map_location="cpu", weights_only=True), strict=False)
     for layer in matcher.transformers:
         cross: Any = layer.cross_attn  # kornia's CrossBlock
-        cross.forward = partial(fused_cross_attention, cross)
+        if not kornia_fuses(cross):
+            cross.forward = partial(fused_cross_attention, cross)
     # channels-last: the CPU's convolutions run faster (4 photos at 1024x768: 6.1-6.4 s against
     # 8.9-9.2 s on one thread, the same keypoints; tools/experiments/xp_fused_attention.py)
     extractor.requires_grad_(False).to(memory_format=torch.channels_last)  # type: ignore[call-overload]
     return extractor.eval(), matcher.requires_grad_(False).eval()
+
+
+def kornia_fuses(block: Any) -> bool:
+    """Whether kornia's own `CrossBlock` runs both directions by `scaled_dot_product_attention` on
+    every device (0.9.2 on, where the block holds its `inner_attn`): the same matches in the same
+    time as `fused_cross_attention` (6.3 s both for 6 pairs, `xp_fused_attention.py`, 2026-12-07)."""
+    return hasattr(block, "inner_attn")
 
 
 def fused_cross_attention(
@@ -157,6 +165,7 @@ __all__ = [
     "Features",
     "extract",
     "fused_cross_attention",
+    "kornia_fuses",
     "match",
     "turned_back",
     "weights_dir",
