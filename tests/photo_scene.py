@@ -3,14 +3,16 @@ cameras, RGB on a plain background, masks beside, the true cameras returned for 
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
+import OpenImageIO as oiio
 
 from tools.prior.meshes import concat
 from tools.prior.procedural import _palette, fractal_noise, superquadric
 from tools.prior.raster import render_rgba
-from wgs.io.images import write_png
+from wgs.io.images import read_image, write_png
 from wgs.scene.orbit import look_at
 
 
@@ -67,3 +69,28 @@ def make_photos(
             write_png(out / "masks" / name, rgba[..., 3])
         cams[name] = (K, w2c)
     return cams
+
+
+DIAGONAL_35MM = 43.27  # mm, COLMAP's full frame diagonal: EXIF's focal = f35 / 43.27 x the photo's diagonal
+
+
+def as_exif_jpegs(folder: Path, focal_px: float) -> float:
+    """The photos of `folder/images` rewritten as JPEGs (the masks keep their stems) whose EXIF
+    gives the 35 mm equivalent focal length in whole millimetres, as a camera writes it (so a per
+    cent or two off `focal_px`); returns the focal length in pixels that EXIF then gives."""
+    given = None
+    for png in sorted((folder / "images").glob("*.png")):
+        rgb = read_image(png)[..., :3]
+        h, w = rgb.shape[:2]
+        f35 = round(focal_px / math.hypot(w, h) * DIAGONAL_35MM)
+        jpg = png.with_suffix(".jpg")
+        spec = oiio.ImageSpec(w, h, 3, oiio.UINT8)
+        spec.attribute("Exif:FocalLengthIn35mmFilm", f35)
+        spec.attribute("Compression", "jpeg:95")
+        out = oiio.ImageOutput.create(str(jpg))
+        out.open(str(jpg), spec)
+        out.write_image(np.clip(rgb * 255 + 0.5, 0, 255).astype(np.uint8))
+        out.close()
+        png.unlink()
+        given = given or f35 / DIAGONAL_35MM * math.hypot(w, h)
+    return float(given)

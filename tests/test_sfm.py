@@ -16,7 +16,7 @@ from wgs.io.images import read_image, write_png
 from wgs.scene.colmap import read_colmap_scene
 from wgs.scene.formats import detect_format, read_scene
 from wgs.scene.llff import llff_to_w2c
-from wgs.scene.pose_error import pose_errors, umeyama
+from wgs.scene.pose_error import camera_similarity, centers, pose_errors, umeyama
 from wgs.scene.sfm import find_photos, pose_photos
 from wgs.scene.splits import choose_split
 from wgs.scene.types import RawScene, View
@@ -48,19 +48,42 @@ def test_umeyama_recovers_a_similarity():
         umeyama(src[:2], dst[:2])
 
 
+def moved_world(w2cs: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """The same cameras [N, 4, 4] in a world moved by the similarity S [4, 4] (x -> S x)."""
+    out = w2cs @ np.linalg.inv(S)
+    out[:, :3, :] /= np.linalg.norm(out[:, 0, :3], axis=1)[:, None, None]  # rigid again: scale into t
+    return out
+
+
+def test_camera_similarity_recovers_a_similarity_and_uses_the_cameras_turn():
+    ref = np.stack(ring_w2c(4, radius=3.0))
+    S = np.eye(4)
+    S[:3, :3] = 0.5 * np.array([[0, -1, 0], [1, 0, 0], [0, 0, 1.0]])
+    S[:3, 3] = [1, 2, 3]
+    s, R, t = camera_similarity(ref, moved_world(ref, S))
+    assert s == pytest.approx(0.5) and np.allclose(s * R, S[:3, :3]) and np.allclose(t, S[:3, 3])
+    # the centres lifted off their plane, one up and one down: Umeyama tilts the plane to follow
+    # them; the cameras' own rotations keep it
+    lifted = ref.copy()
+    for i, dy in ((0, 0.3), (2, -0.3)):
+        c = centers(ref)[i] + np.array([0, 0, dy])
+        lifted[i, :3, 3] = -lifted[i, :3, :3] @ c
+    tilt = lambda R: np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1)))  # noqa: E731
+    assert tilt(camera_similarity(ref, lifted)[1]) < 1e-6
+    assert tilt(umeyama(centers(ref), centers(lifted))[1]) > 3
+    with pytest.raises(ValueError):
+        camera_similarity(ref[:1], ref[:1])
+
+
 def test_pose_errors_zero_for_a_moved_copy_and_see_a_turned_camera():
     ref = np.stack(ring_w2c(8, radius=3.0))
     S = np.eye(4)  # a world moved, turned and scaled: same cameras
     S[:3, :3] = 0.5 * np.array([[0, -1, 0], [1, 0, 0], [0, 0, 1.0]])
     S[:3, 3] = [1, 2, 3]
-    est = []
-    for w2c in ref:
-        m = w2c @ np.linalg.inv(S)
-        m[:3, :] /= np.linalg.norm(m[0, :3])  # rigid again: the scale goes into the translation
-        est.append(m)
-    err = pose_errors(np.stack(est), ref)
+    est = moved_world(ref, S)
+    err = pose_errors(est, ref)
     assert err["rotation_deg"].max() < 1e-6 and err["center"].max() < 1e-6
-    turned = np.stack(est)
+    turned = est.copy()
     c, s = np.cos(np.radians(5)), np.sin(np.radians(5))
     turned[0, :3, :] = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) @ turned[0, :3, :]  # same centre
     err = pose_errors(turned, ref)

@@ -9,7 +9,7 @@ import socket
 import numpy as np
 import pytest
 from conftest import expect_error
-from photo_scene import make_photos
+from photo_scene import as_exif_jpegs, make_photos
 
 from wgs import progress
 from wgs.fields import facts
@@ -48,6 +48,25 @@ def test_four_photos_45_degrees_apart_are_posed_offline(tmp_path, monkeypatch):
     }
     keys = sorted(posed)
     err = pose_errors(np.stack([posed[k] for k in keys]), np.stack([cams[k][1] for k in keys]))
+    assert np.median(err["rotation_deg"]) <= 2.0 and np.median(err["center"]) <= 0.05, err
+
+
+@pytest.mark.slow
+def test_the_focal_length_the_photos_exif_gives_is_held(tmp_path, capsys, monkeypatch):
+    """4 JPEGs 30 degrees apart whose EXIF gives their focal length (35 mm equivalent, whole mm):
+    posed with that focal, unrefined, and within the posing tolerance."""
+    cams = make_photos(tmp_path / "p", n=4, azimuths=[0, 30, 60, 90])
+    exif = as_exif_jpegs(tmp_path / "p", float(cams["photo_000.png"][0][0, 0]))
+    image_dir, names, mask_dir = find_photos(tmp_path / "p")
+    monkeypatch.setattr(progress, "_quiet", False)
+    monkeypatch.setattr(progress.console, "quiet", False)
+    res = pose_photos(image_dir, names, mask_dir, tmp_path / "model", "auto", 1600, match_side=SIDE)
+    assert f"the focal length from the photos' EXIF ({exif:.0f} px" in " ".join(capsys.readouterr().err.split())
+    assert res.registered == 4
+    views = read_colmap_scene(tmp_path / "p", tmp_path / "model", image_dir, fmt="photos").views
+    focals = [float(v.K[0, 0]) for v in views]
+    assert focals == pytest.approx([exif] * 4, rel=1e-9), focals
+    err = pose_errors(np.stack([v.w2c for v in views]), np.stack([cams[v.name[:-4] + ".png"][1] for v in views]))
     assert np.median(err["rotation_deg"]) <= 2.0 and np.median(err["center"]) <= 0.05, err
 
 

@@ -246,7 +246,8 @@ def bench_knn(sizes: tuple[int, ...] = (100_000, 1_000_000), reference_up_to: in
 def bench_sfm(scene: str, root: str, matcher: str = "auto", max_image_size: int = 1600) -> dict:
     """Pose a scene that ships its own poses again from its photos alone (structure-from-motion,
     `wgs prepare`'s path) and compare after a similarity alignment: rotation error (degrees) and
-    camera-centre error (share of the scene's camera extent), photos registered, time."""
+    camera-centre error (share of the scene's camera extent), the focal length over the scene's,
+    photos registered, time."""
     import numpy as np
 
     from wgs.scene.colmap import read_colmap_scene
@@ -260,15 +261,18 @@ def bench_sfm(scene: str, root: str, matcher: str = "auto", max_image_size: int 
     folder = Path(root) / "sfm_photos"
     shutil.rmtree(folder, ignore_errors=True)
     folder.mkdir(parents=True)
-    for v in photos:  # the photos alone, flat, under their own names
-        shutil.copy2(v.image, folder / v.image.name)
+    # the photos alone, flat, under the scene's names for them (a split's files may share names)
+    flat = {v.name: v.name.replace("/", "_") for v in photos}
+    for v in photos:
+        shutil.copy2(v.image, folder / flat[v.name])
     out = Path(root) / "sfm_model"
-    res = pose_photos(folder, [v.image.name for v in photos], None, out, matcher, max_image_size, thread_count())
+    res = pose_photos(folder, list(flat.values()), None, out, matcher, max_image_size, thread_count())
 
     posed = {v.name: v for v in read_colmap_scene(folder, out, folder, fmt="photos").views}
-    both = [v for v in photos if v.image.name in posed]
-    err = pose_errors(np.stack([posed[v.image.name].w2c for v in both]), np.stack([v.w2c for v in both]))
+    both = [v for v in photos if flat[v.name] in posed]
+    err = pose_errors(np.stack([posed[flat[v.name]].w2c for v in both]), np.stack([v.w2c for v in both]))
     rot, cen = np.asarray(err["rotation_deg"]), np.asarray(err["center"]) * 100
+    focal = np.array([posed[flat[v.name]].K[0, 0] / v.K[0, 0] for v in both])
     return {
         "benchmark": "sfm",
         "scene": scene,
@@ -280,6 +284,7 @@ def bench_sfm(scene: str, root: str, matcher: str = "auto", max_image_size: int 
         "threads": thread_count(),
         "rotation_deg": {"median": round(float(np.median(rot)), 3), "max": round(float(rot.max()), 3)},
         "center_pct_extent": {"median": round(float(np.median(cen)), 3), "max": round(float(cen.max()), 3)},
+        "focal_over_true": {"median": round(float(np.median(focal)), 4)},
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
     }
 

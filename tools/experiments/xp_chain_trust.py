@@ -94,7 +94,7 @@ def main() -> None:
             focal = float(next(iter(cams.values()))[0][0, 0]) if args.known_focal else None
             work, db, image_dir, names, _ = learned_database(folder, focal)
             with sfm._colmap_quiet():
-                incremental = sfm._incremental_mapping(db, image_dir, work, 4, 1, True, focal)
+                incremental = sfm._incremental_mapping(db, image_dir, work, 4, 1, True, focal is not None)
                 chain = chain_model(db, image_dir, names, work / "chain", refine_focal=focal is None)
             print(f"radius {radius:g}, {step:g} deg, shape {shape}:")
             print("   pairs: " + " | ".join(pair_rows(db, names, truth)))

@@ -49,6 +49,13 @@ def lego_chain(root: Path, step: float, out: Path) -> dict[str, np.ndarray]:
     return truth
 
 
+def lego_focal(root: Path) -> float:
+    """Lego's focal length in pixels at the size `lego_chain` writes its photos (the renders' own)."""
+    meta = json.loads((root / "transforms_train.json").read_text())
+    width = read_image(root / (meta["frames"][0]["file_path"] + ".png")).shape[1]
+    return width / 2 / float(np.tan(meta["camera_angle_x"] / 2))
+
+
 def spacing(truth: dict[str, np.ndarray]) -> str:
     """The angle between each photo and its nearest other, about the origin (degrees)."""
     centres = {k: -m[:3, :3].T @ m[:3, 3] for k, m in truth.items()}
@@ -59,7 +66,8 @@ def spacing(truth: dict[str, np.ndarray]) -> str:
     return f"{min(near):.0f}-{max(near):.0f}"
 
 
-def run(scene: str, truth: dict[str, np.ndarray], folder: Path) -> dict:
+def run(scene: str, truth: dict[str, np.ndarray], folder: Path, focal: float) -> dict:
+    """Pose the photos in `folder`; errors against `truth` {name: w2c} and the true focal (px)."""
     image_dir, names, mask_dir = find_photos(folder)
     t0 = time.perf_counter()
     try:
@@ -72,9 +80,9 @@ def run(scene: str, truth: dict[str, np.ndarray], folder: Path) -> dict:
             "seconds": time.perf_counter() - t0,
             "note": str(exc),
         }
-    posed = {v.name: v.w2c for v in read_colmap_scene(folder, folder / "model", image_dir, fmt="photos").views}
+    posed = {v.name: v for v in read_colmap_scene(folder, folder / "model", image_dir, fmt="photos").views}
     keys = sorted(posed)
-    err = pose_errors(np.stack([posed[k] for k in keys]), np.stack([truth[k] for k in keys]))
+    err = pose_errors(np.stack([posed[k].w2c for k in keys]), np.stack([truth[k] for k in keys]))
     return {
         "scene": scene,
         "spacing": spacing(truth),
@@ -82,6 +90,7 @@ def run(scene: str, truth: dict[str, np.ndarray], folder: Path) -> dict:
         "seconds": res.seconds,
         "rotation_median": float(np.median(err["rotation_deg"])),
         "centre_median": float(np.median(err["center"])),
+        "focal_ratio": float(np.median([posed[k].K[0, 0] for k in keys]) / focal),
     }
 
 
@@ -96,23 +105,29 @@ def main() -> None:
         for step in args.steps:
             folder = Path(tmp) / f"generated_{step:g}"
             cams = make_photos(folder, n=4, azimuths=[step * i for i in range(4)])
-            rows.append(run(f"generated, {step:g} deg steps", {k: v[1] for k, v in cams.items()}, folder))
+            focal = float(next(iter(cams.values()))[0][0, 0])
+            rows.append(run(f"generated, {step:g} deg steps", {k: v[1] for k, v in cams.items()}, folder, focal))
             for shape in args.shapes:
                 folder = Path(tmp) / f"generated_{shape}_{step:g}"
                 cams = make_photos(folder, n=4, azimuths=[step * i for i in range(4)], shape_seed=shape)
                 name = f"generated (shape {shape}), {step:g} deg steps"
-                rows.append(run(name, {k: v[1] for k, v in cams.items()}, folder))
+                rows.append(run(name, {k: v[1] for k, v in cams.items()}, folder, focal))
             if (args.lego / "transforms_train.json").is_file():
                 folder = Path(tmp) / f"lego_{step:g}"
-                rows.append(run(f"lego, {step:g} deg chain", lego_chain(args.lego, step, folder), folder))
-    print("| scene | nearest neighbour (deg) | posed | rotation median (deg) | centre median (% extent) | s |")
-    print("| --- | --- | ---: | ---: | ---: | ---: |")
+                truth = lego_chain(args.lego, step, folder)
+                rows.append(run(f"lego, {step:g} deg chain", truth, folder, lego_focal(args.lego)))
+    print(
+        "| scene | nearest neighbour (deg) | posed | rotation median (deg) | centre median (% extent) "
+        "| focal / true | s |"
+    )
+    print("| --- | --- | ---: | ---: | ---: | ---: | ---: |")
     for r in rows:
         rot = f"{r['rotation_median']:.2f}" if "rotation_median" in r else "refused"
         cen = f"{100 * r['centre_median']:.1f}" if "centre_median" in r else ""
-        print(f"| {r['scene']} | {r['spacing']} | {r['posed']} of 4 | {rot} | {cen} | {r['seconds']:.1f} |")
+        focal = f"{r['focal_ratio']:.3f}" if "focal_ratio" in r else ""
+        print(f"| {r['scene']} | {r['spacing']} | {r['posed']} of 4 | {rot} | {cen} | {focal} | {r['seconds']:.1f} |")
         if "note" in r:
-            print(f"|  | {r['note']} | | | | |")
+            print(f"|  | {r['note']} | | | | | |")
 
 
 if __name__ == "__main__":

@@ -2,7 +2,10 @@
 at the true test cameras: the posed model's world is aligned to the true one by the similarity
 that takes its 4 training camera centres onto the true ones (Umeyama), and each true test camera
 is moved into the model's world by it. The run with true cameras is scored the same way (its own
-world is a normalised copy of the true one), so both numbers come from one scorer.
+world is a normalised copy of the true one), so both numbers come from one scorer. Two more
+columns score G_f with the test views given the run's own focal length (one camera took every
+photo, and the model is drawn to the focal that structure-from-motion found), aligned by the
+centres as above and by the cameras' rotations and centres (`pose_error.camera_similarity`).
 
 Scenes: 4 NeRF-Synthetic lego views along a chain about `--step` degrees apart (measuring only;
 its 200 test views) and a generated object (tests/photo_scene.py) at the same spacing, with 12
@@ -36,7 +39,7 @@ from wgs.io import read_json  # noqa: E402
 from wgs.io.images import downscale, read_image, split_rgba, write_png  # noqa: E402
 from wgs.scene.convention import c2w_opengl_to_w2c_opencv  # noqa: E402
 from wgs.scene.dataset import Frame, load_prepared  # noqa: E402
-from wgs.scene.pose_error import centers, pose_errors, umeyama  # noqa: E402
+from wgs.scene.pose_error import camera_similarity, centers, pose_errors, umeyama  # noqa: E402
 from wgs.stages.eval.scoring import evaluate_model, spread, summarise  # noqa: E402
 from wgs.workspace import Workspace  # noqa: E402
 
@@ -119,9 +122,15 @@ def run_all(scene: Path, ws: Path, extra: list[str]) -> float:
     return seconds
 
 
-def aligned_tests(ws: Path, truth: dict[str, np.ndarray], tests: dict) -> tuple[list[Frame], dict]:
+def aligned_tests(
+    ws: Path, truth: dict[str, np.ndarray], tests: dict, align: str = "centres", own_focal: bool = False
+) -> tuple[list[Frame], dict]:
     """The true test cameras moved into the workspace's normalised world, at its working size,
-    with their images; and the training poses' error against the truth."""
+    with their images; and the training poses' error against the truth.
+    align: "centres" (Umeyama on the training cameras' centres) or "cameras" (their rotations,
+    then their centres: `camera_similarity`). own_focal: the test views take the run's intrinsics
+    (one camera took every photo; posed from 4 photos, its focal is a few per cent off, and the
+    model is drawn to it), else the true ones."""
     ws_ = Workspace(ws)
     scene = load_prepared(ws_.output("prepare", "prepared"))
     # prepare names a view by its split ("train_photo_000.png"): match on the photo's own name
@@ -130,8 +139,10 @@ def aligned_tests(ws: Path, truth: dict[str, np.ndarray], tests: dict) -> tuple[
     names = sorted(est)
     true_w2c = np.stack([truth[n] for n in names])
     est_w2c = np.stack([est[n] for n in names])
-    s, R, t = umeyama(centers(true_w2c), centers(est_w2c))  # true world -> model world
+    similarity = umeyama(centers(true_w2c), centers(est_w2c)) if align == "centres" else None
+    s, R, t = similarity or camera_similarity(true_w2c, est_w2c)  # true world -> model world
     size = scene.photos[0].width
+    run_K = scene.photos[0].K.double().numpy()
     frames = []
     for name, (K, w2c, path) in tests.items():
         rgb, mask = split_rgba(read_image(path))
@@ -143,6 +154,8 @@ def aligned_tests(ws: Path, truth: dict[str, np.ndarray], tests: dict) -> tuple[
         moved[:3, 3] = s * tc - Rc @ R.T @ t
         Kk = K.copy()
         Kk[:2] /= k
+        if own_focal:
+            Kk[0, 0], Kk[1, 1] = run_K[0, 0], run_K[1, 1]
         frames.append(
             Frame(
                 torch.tensor(Kk, dtype=torch.float32),
@@ -156,6 +169,7 @@ def aligned_tests(ws: Path, truth: dict[str, np.ndarray], tests: dict) -> tuple[
         )
     err = pose_errors(est_w2c, true_w2c)
     return frames, {
+        "focal_ratio": float(run_K[0, 0] / (tests[next(iter(tests))][0][0, 0] / k)),
         "rotation_deg": float(np.median(err["rotation_deg"])),
         "centre": float(np.median(err["center"])),
         "norm": scene.norm,
@@ -208,18 +222,28 @@ def main() -> None:
                         ws, spread(frames, args.refine_views), pose["norm"], "fine", args.refine_steps
                     ),
                     "own_eval": read_json(Workspace(ws).output("eval", "results"))["psnr"],
+                    "focal_ratio": pose["focal_ratio"],
+                    "own_focal": score(
+                        ws, aligned_tests(ws, data["truth"], data["tests"], own_focal=True)[0], pose["norm"], "fine"
+                    ),
+                    "cameras_own_focal": score(
+                        ws, aligned_tests(ws, data["truth"], data["tests"], "cameras", True)[0], pose["norm"], "fine"
+                    ),
                 }
             )
     print(
         "| scene | cameras | pose error (deg / % extent) | G_c PSNR | G_f PSNR | G_f IoU | G_f PSNR, test poses "
-        "refined | wgs all (s) | its own eval (dB) |"
+        "refined | wgs all (s) | its own eval (dB) | focal / true | G_f PSNR / IoU, the run's focal | "
+        "the same, aligned on the cameras' rotations |"
     )
-    print("| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
+    print("| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
     for r in rows:
         print(
             f"| {r['scene']} | {r['cameras']} | {r['rotation_deg']:.2f} / {100 * r['centre']:.1f} | "
             f"{r['coarse']['psnr']:.2f} | {r['fine']['psnr']:.2f} | {r['fine']['iou']:.3f} | "
-            f"{r['fine_refined']['psnr']:.2f} | {r['wall_s']:.0f} | {r['own_eval']:.2f} |"
+            f"{r['fine_refined']['psnr']:.2f} | {r['wall_s']:.0f} | {r['own_eval']:.2f} | {r['focal_ratio']:.3f} | "
+            f"{r['own_focal']['psnr']:.2f} / {r['own_focal']['iou']:.3f} | "
+            f"{r['cameras_own_focal']['psnr']:.2f} / {r['cameras_own_focal']['iou']:.3f} |"
         )
 
 

@@ -167,7 +167,7 @@ def learned_database(folder: Path, focal: float | None):
 def compare(folder: Path, truth: dict[str, np.ndarray], focal: float | None) -> dict[str, str]:
     work, db, image_dir, names, verified = learned_database(folder, focal)
     with sfm._colmap_quiet():
-        incremental = sfm._incremental_mapping(db, image_dir, work, len(names), 1, True, focal)
+        incremental = sfm._incremental_mapping(db, image_dir, work, len(names), 1, True, focal is not None)
         options = pycolmap.GlobalPipelineOptions()
         options.random_seed, options.min_num_matches, options.min_model_size = sfm.RANSAC_SEED, sfm.MIN_PAIR_INLIERS, 3
         (work / "global").mkdir()

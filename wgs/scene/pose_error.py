@@ -26,6 +26,25 @@ def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.nda
     return s, R, mu_d - s * R @ mu_s
 
 
+def camera_similarity(src_w2c: np.ndarray, dst_w2c: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """The similarity x_dst = s * R @ x_src + t that best takes the cameras src [N, 4, 4] onto dst
+    [N, 4, 4] (world-to-camera, OpenCV, N >= 2) by their rotations and centres: R from the cameras'
+    orientations (each dst rotation ~ src rotation @ R^T, averaged on SO(3)), then the scale and
+    shift that take the src centres onto the dst ones under that R. With 4 cameras along an arc,
+    the centres alone (`umeyama`) leave the arc's plane free to tilt by their errors.
+
+    Returns s, R [3, 3], t [3]."""
+    if src_w2c.shape != dst_w2c.shape or src_w2c.ndim != 3 or src_w2c.shape[1:] != (4, 4) or len(src_w2c) < 2:
+        raise ValueError(f"camera_similarity: matching [N >= 2, 4, 4] cameras expected, got {src_w2c.shape}")
+    M = np.einsum("nki,nkj->ij", dst_w2c[:, :3, :3], src_w2c[:, :3, :3])  # sum of dst_R^T @ src_R
+    U, _, Vt = np.linalg.svd(M)
+    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    a, b = centers(src_w2c), centers(dst_w2c)
+    a0, b0 = a - a.mean(0), b - b.mean(0)
+    s = float(np.sum(b0 * (a0 @ R.T)) / max(float(np.sum(a0**2)), 1e-300))
+    return s, R, b.mean(0) - s * R @ a.mean(0)
+
+
 def centers(w2cs: np.ndarray) -> np.ndarray:
     """Camera centres [N, 3] of world-to-camera matrices [N, 4, 4]."""
     R, t = w2cs[:, :3, :3], w2cs[:, :3, 3]
@@ -55,4 +74,4 @@ def pose_errors(est_w2c: np.ndarray, ref_w2c: np.ndarray) -> dict[str, np.ndarra
     }
 
 
-__all__ = ["umeyama", "centers", "pose_errors"]
+__all__ = ["umeyama", "camera_similarity", "centers", "pose_errors"]

@@ -53,7 +53,9 @@ def mask_folder(cfg: PrepareConfig) -> Path | None:
 
 
 def _photos_digest(image_dir: Path, names: list[str], mask_dir: Path | None, cfg: PrepareConfig) -> str:
-    h = hashlib.sha256(f"sfm-2:{cfg.matcher}:{cfg.sfm_max_image_size}:{cfg.match_side}:{cfg.focal}:{cfg.fov}".encode())
+    h = hashlib.sha256(
+        f"sfm-3:{cfg.matcher}:{cfg.sfm_max_image_size}:{cfg.match_side}:{cfg.focal}:{cfg.fov}:{cfg.hold_exif_focal}".encode()
+    )
     for folder in (image_dir, mask_dir):
         for p in sorted(folder.iterdir()) if folder is not None else ():
             if p.is_file() and (folder != image_dir or p.name in names):
@@ -96,6 +98,7 @@ def posed_photos(ws: Workspace, scene_dir: Path, cfg: PrepareConfig) -> Path:
             thread_count(),
             known_focal(cfg, image_dir, names),
             cfg.match_side,
+            cfg.hold_exif_focal,
         )
         atomic_write_json(
             out / SFM_SUMMARY,

@@ -64,6 +64,9 @@ class PrepareConfig(MaskParams):
         bounds=(1, 179),
     )
     sfm_max_image_size: int = 1600  # SIFT on photos downscaled to this longest side
+    # a few photos posed by learned matching keep the focal length their EXIF gives (false: bundle
+    # adjustment refines it from there); a photo cropped after it was taken keeps its uncropped EXIF
+    hold_exif_focal: bool = True
     # learned matching on photos resized to this long side (px; smaller photos are enlarged to it)
     match_side: int = option(MATCH_SIDE, bounds=(64, None))
     # photos wgs posed from a few views (learned matching), with masks of their own: the cameras
