@@ -53,14 +53,16 @@ def test_four_photos_45_degrees_apart_are_posed_offline(tmp_path, monkeypatch):
 
 @pytest.mark.slow
 def test_the_focal_length_the_photos_exif_gives_is_held(tmp_path, capsys, monkeypatch):
-    """4 JPEGs 30 degrees apart whose EXIF gives their focal length (35 mm equivalent, whole mm):
-    posed with that focal, unrefined, and within the posing tolerance."""
+    """4 JPEGs 30 degrees apart whose EXIF gives their focal length (35 mm equivalent, whole mm),
+    with `hold_exif_focal`: posed with that focal, unrefined, and within the posing tolerance."""
     cams = make_photos(tmp_path / "p", n=4, azimuths=[0, 30, 60, 90])
     exif = as_exif_jpegs(tmp_path / "p", float(cams["photo_000.png"][0][0, 0]))
     image_dir, names, mask_dir = find_photos(tmp_path / "p")
     monkeypatch.setattr(progress, "_quiet", False)
     monkeypatch.setattr(progress.console, "quiet", False)
-    res = pose_photos(image_dir, names, mask_dir, tmp_path / "model", "auto", 1600, match_side=SIDE)
+    res = pose_photos(
+        image_dir, names, mask_dir, tmp_path / "model", "auto", 1600, match_side=SIDE, hold_exif_focal=True
+    )
     assert f"the focal length from the photos' EXIF ({exif:.0f} px" in " ".join(capsys.readouterr().err.split())
     assert res.registered == 4
     views = read_colmap_scene(tmp_path / "p", tmp_path / "model", image_dir, fmt="photos").views

@@ -7,12 +7,16 @@ columns score G_f with the test views given the run's own focal length (one came
 photo, and the model is drawn to the focal that structure-from-motion found), aligned by the
 centres as above and by the cameras' rotations and centres (`pose_error.camera_similarity`).
 
+`--exif`: two more runs on the same 4 photos written as JPEGs whose EXIF gives their focal length
+(35 mm equivalent in whole millimetres, `photo_scene.as_exif_jpegs`), as a phone's photos carry
+it: with the defaults (EXIF's focal refined) and with `[prepare] hold_exif_focal = true`.
+
 Scenes: 4 NeRF-Synthetic lego views along a chain about `--step` degrees apart (measuring only;
 its 200 test views) and a generated object (tests/photo_scene.py) at the same spacing, with 12
 views around it as test views. Runs go to `--out` (a cache outside the repository) and are kept:
 a second call scores them again without training.
 
-    python tools/experiments/xp_unposed_run.py [--lego ../shared/data/lego] [--step 45] [--out DIR]
+    python tools/experiments/xp_unposed_run.py [--lego ../shared/data/lego] [--step 45] [--out DIR] [--exif]
 """
 
 import argparse
@@ -30,7 +34,7 @@ import torch
 # the repository root (tools/) and tests/ (the photo generator), run as a script from anywhere
 sys.path[:0] = [str(Path(__file__).resolve().parents[2]), str(Path(__file__).resolve().parents[2] / "tests")]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from photo_scene import make_photos  # noqa: E402
+from photo_scene import as_exif_jpegs, make_photos  # noqa: E402
 from xp_sparse_pose import lego_chain  # noqa: E402
 
 from wgs.gaussians.localise import localise  # noqa: E402
@@ -110,13 +114,15 @@ def generated_scene(step: float, out: Path) -> dict:
     return {"truth": truth, "tests": tests}
 
 
-def run_all(scene: Path, ws: Path, extra: list[str]) -> float:
-    """`wgs all` (skipped when its report is there); its wall time in seconds."""
+def run_all(scene: Path, ws: Path, extra: list[str], config: Path | None = None) -> float:
+    """`wgs all` (skipped when its report is there), with `config` where given; its wall time in
+    seconds."""
     timing = ws / "xp_wall_s.txt"
     if timing.is_file():
         return float(timing.read_text())
     t0 = time.perf_counter()
-    subprocess.run([WGS, "all", str(scene), "-w", str(ws), *extra], check=True)
+    given = ["--config", str(config)] if config is not None else []
+    subprocess.run([WGS, *given, "all", str(scene), "-w", str(ws), *extra], check=True)
     seconds = time.perf_counter() - t0
     timing.write_text(f"{seconds:.1f}")
     return seconds
@@ -134,7 +140,7 @@ def aligned_tests(
     ws_ = Workspace(ws)
     scene = load_prepared(ws_.output("prepare", "prepared"))
     # prepare names a view by its split ("train_photo_000.png"): match on the photo's own name
-    own = {f.name: next(k for k in truth if f.name.endswith(k)) for f in scene.photos}
+    own = {f.name: next(k for k in truth if Path(f.name).stem.endswith(Path(k).stem)) for f in scene.photos}
     est = {own[f.name]: f.viewmat.double().numpy() for f in scene.photos}
     names = sorted(est)
     true_w2c = np.stack([truth[n] for n in names])
@@ -195,6 +201,7 @@ def main() -> None:
     ap.add_argument("--only", choices=("lego", "generated"), default=None)
     ap.add_argument("--refine-views", type=int, default=40, help="test views scored after test-pose refinement")
     ap.add_argument("--refine-steps", type=int, default=60)
+    ap.add_argument("--exif", action="store_true", help="also the 4 photos as JPEGs whose EXIF gives their focal")
     args = ap.parse_args()
     scenes = []
     if args.only in (None, "generated"):
@@ -205,14 +212,26 @@ def main() -> None:
     for label, make, extra, _ in scenes:
         out = args.out / f"{label}_{args.step:g}"
         data = make(args.step, out)
-        for kind in ("posed", "unposed"):
+        # (workspace, photos, config, cameras)
+        kinds = [("posed", "posed", None, "true"), ("unposed", "unposed", None, "posed by wgs")]
+        if args.exif:
+            if not (out / "unposed_exif").is_dir():
+                shutil.copytree(out / "unposed", out / "unposed_exif")
+                as_exif_jpegs(out / "unposed_exif", float(next(iter(data["tests"].values()))[0][0, 0]))
+            held = out / "hold_exif_focal.toml"
+            held.write_text("[prepare]\nhold_exif_focal = true\n")
+            kinds += [
+                ("unposed_exif", "unposed_exif", None, "posed by wgs, EXIF's focal refined"),
+                ("unposed_exif_held", "unposed_exif", held, "posed by wgs, EXIF's focal held"),
+            ]
+        for kind, photos, config, cameras in kinds:
             ws = out / f"ws_{kind}"
-            wall = run_all(out / kind, ws, extra)
+            wall = run_all(out / photos, ws, extra, config)
             frames, pose = aligned_tests(ws, data["truth"], data["tests"])
             rows.append(
                 {
                     "scene": f"{label}, {args.step:g} deg",
-                    "cameras": "true" if kind == "posed" else "posed by wgs",
+                    "cameras": cameras,
                     "wall_s": wall,
                     "rotation_deg": pose["rotation_deg"],
                     "centre": pose["centre"],

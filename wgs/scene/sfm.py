@@ -54,6 +54,9 @@ MIN_REGISTERED = 3
 # the seed of COLMAP's RANSAC in two-view verification and in the mapper; left random, the same 4
 # lego photos posed 1.93 or 1.94 degrees off from one run to the next, and once 5.12
 RANSAC_SEED = 0
+# learned matching keeps the focal length the photos' EXIF gives: it poses 4 photos closer, but
+# the one whole run measured scored lower than with it refined (README, "Your own photos")
+HOLD_EXIF_FOCAL = False
 MIN_SHARE = 0.5  # fewer registered photos than this share: posing failed
 FEW_PHOTOS = 10  # below this, say that structure-from-motion needs more overlapping photos
 MAX_FEATURES = 8192
@@ -145,7 +148,7 @@ def pose_photos(
     threads: int = 1,
     focal: float | None = None,
     match_side: int = MATCH_SIDE,
-    hold_exif_focal: bool = True,
+    hold_exif_focal: bool = HOLD_EXIF_FOCAL,
 ) -> SfmResult:
     """Run structure-from-motion on `names` in `image_dir`; the largest model goes to `out/`
     (written whole or not at all). `matcher`: auto (learned matching up to SPARSE_UP_TO photos,

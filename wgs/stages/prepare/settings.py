@@ -9,6 +9,7 @@ from typing import Any
 from ...cost import CPU_TARGET_S, GPU_MAX_SIZE, Calibration, SceneFacts, StageCost
 from ...fields import option
 from ...scene.learned_matching import MATCH_SIDE
+from ...scene.sfm import HOLD_EXIF_FOCAL
 from ...segment.accept import MaskParams
 from ..stage import Stage, StageEnv
 
@@ -66,7 +67,7 @@ class PrepareConfig(MaskParams):
     sfm_max_image_size: int = 1600  # SIFT on photos downscaled to this longest side
     # a few photos posed by learned matching keep the focal length their EXIF gives (false: bundle
     # adjustment refines it from there); a photo cropped after it was taken keeps its uncropped EXIF
-    hold_exif_focal: bool = True
+    hold_exif_focal: bool = HOLD_EXIF_FOCAL
     # learned matching on photos resized to this long side (px; smaller photos are enlarged to it)
     match_side: int = option(MATCH_SIDE, bounds=(64, None))
     # photos wgs posed from a few views (learned matching), with masks of their own: the cameras
