@@ -5,7 +5,11 @@ is moved into the model's world by it. The run with true cameras is scored the s
 world is a normalised copy of the true one), so both numbers come from one scorer. Two more
 columns score G_f with the test views given the run's own focal length (one camera took every
 photo, and the model is drawn to the focal that structure-from-motion found), aligned by the
-centres as above and by the cameras' rotations and centres (`pose_error.camera_similarity`).
+centres as above and by the cameras' rotations and centres (`pose_error.camera_similarity`). The
+last two: the alignment refined by the photos, one similarity for every test camera (7 degrees of
+freedom, `fit_similarity`, fitted on `--align-views` of them; in brackets the score on the others),
+from the true focal and from the run's own aligned by the cameras. Every run is scored each way,
+the one with true cameras too: the fit moves its cameras off the truth by what it gains on L1.
 
 `--exif`: two more runs on the same 4 photos written as JPEGs whose EXIF gives their focal length
 (35 mm equivalent in whole millimetres, `photo_scene.as_exif_jpegs`), as a phone's photos carry
@@ -17,6 +21,7 @@ views around it as test views. Runs go to `--out` (a cache outside the repositor
 a second call scores them again without training.
 
     python tools/experiments/xp_unposed_run.py [--lego ../shared/data/lego] [--step 45] [--out DIR] [--exif]
+        [--only generated --shape 1]
 """
 
 import argparse
@@ -26,6 +31,7 @@ import shutil
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -37,12 +43,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from photo_scene import as_exif_jpegs, make_photos  # noqa: E402
 from xp_sparse_pose import lego_chain  # noqa: E402
 
-from wgs.gaussians.localise import localise  # noqa: E402
-from wgs.gaussians.splats import load_checkpoint  # noqa: E402
+from wgs.gaussians.localise import axis_angle_quat, localise  # noqa: E402
+from wgs.gaussians.project import quat_multiply, quat_to_rotmat  # noqa: E402
+from wgs.gaussians.render import rasterize  # noqa: E402
+from wgs.gaussians.splats import activate, load_checkpoint  # noqa: E402
 from wgs.io import read_json  # noqa: E402
 from wgs.io.images import downscale, read_image, split_rgba, write_png  # noqa: E402
 from wgs.scene.convention import c2w_opengl_to_w2c_opencv  # noqa: E402
-from wgs.scene.dataset import Frame, load_prepared  # noqa: E402
+from wgs.scene.dataset import Frame, composite, load_prepared  # noqa: E402
 from wgs.scene.pose_error import camera_similarity, centers, pose_errors, umeyama  # noqa: E402
 from wgs.stages.eval.scoring import evaluate_model, spread, summarise  # noqa: E402
 from wgs.workspace import Workspace  # noqa: E402
@@ -86,11 +94,12 @@ def lego_scene(lego: Path, step: float, out: Path) -> dict:
     return {"truth": truth, "tests": tests}
 
 
-def generated_scene(step: float, out: Path) -> dict:
-    """A generated object: 4 photos `step` degrees apart, and 12 test views around it."""
+def generated_scene(step: float, out: Path, shape: int | None = None) -> dict:
+    """A generated object (`shape`: another one, `make_photos`' shape_seed): 4 photos `step` degrees
+    apart, and 12 test views around it."""
     azimuths = [step * i for i in range(4)] + [15 + 30 * i for i in range(12)]
     every = out / "all"
-    cams = make_photos(every, n=len(azimuths), azimuths=azimuths)
+    cams = make_photos(every, n=len(azimuths), azimuths=azimuths, shape_seed=shape)
     names = sorted(cams)
     (out / "posed" / "train").mkdir(parents=True, exist_ok=True)
     (out / "posed" / "test").mkdir(parents=True, exist_ok=True)
@@ -182,14 +191,69 @@ def aligned_tests(
     }
 
 
-def score(ws: Path, frames: list[Frame], norm, stage: str, refine_steps: int = 0) -> dict:
+def fit_similarity(
+    splats, frames: list[Frame], bg: torch.Tensor, steps: int, lr: float = 2e-3
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """One similarity for all the test cameras (7 degrees of freedom, Adam on the photometric L1 of
+    every frame at once) where the frozen model fits their photos best: the alignment of the two
+    worlds refined by the photos, against `localise`'s 6 per camera. The world moves instead (x ->
+    s R (x - c) + c + tau about the model's centroid c, the Gaussians' scales times s).
+    Returns world [4, 4] = [R | t] and s: the moved world is s R x + t."""
+    means, quats, scales, opac, sh = (t.detach().cpu() for t in activate(splats))
+    c = means.mean(0)
+    truths = [composite(f.pixels, f.mask, bg) for f in frames]
+    omega, tau, log_s = (torch.zeros(n, requires_grad=True) for n in (3, 3, 1))
+    opt = torch.optim.Adam([omega, tau, log_s], lr=lr)
+    for _ in range(steps):
+        R, s = quat_to_rotmat(axis_angle_quat(omega)[None])[0], log_s.exp()
+        moved = s * (means - c) @ R.T + c + tau
+        q = quat_multiply(axis_angle_quat(omega).expand_as(quats), quats)
+        loss = sum(
+            (rasterize(moved, q, scales * s, opac, sh, f.viewmat, f.K, f.width, f.height, bg)[0] - truth).abs().mean()
+            for f, truth in zip(frames, truths, strict=True)
+        )
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        R, s = quat_to_rotmat(axis_angle_quat(omega)[None])[0], log_s.exp()
+        world = torch.eye(4)
+        world[:3, :3], world[:3, 3] = R, c + tau - s * R @ c
+    return world, s
+
+
+def moved_cameras(frames: list[Frame], world: torch.Tensor, s: torch.Tensor) -> list[Frame]:
+    """Each camera [Rc | tc] that sees the unmoved model as it saw the world moved by (world, s):
+    [Rc R | (Rc t + tc) / s] (a view does not change when the whole scene is scaled)."""
+    out = []
+    for f in frames:
+        m = f.viewmat @ world
+        m[:3, 3] /= s
+        out.append(replace(f, viewmat=m))
+    return out
+
+
+def score(
+    ws: Path, frames: list[Frame], norm, stage: str, refine_steps: int = 0, align: tuple[int, int] = (0, 0)
+) -> dict:
+    """G_`stage`'s PSNR and IoU at `frames`: as given, each localised (`refine_steps`), or all moved by
+    one similarity fitted on `align` = (steps, views spread among them)."""
     splats, _ = load_checkpoint(Workspace(ws).output(stage, "model"), norm, "cpu")
     bg = torch.ones(3)
     if refine_steps:
         frames = [localise(splats, f, bg, refine_steps)[0] for f in frames]
+    fitted_on: set[str] = set()
+    if align[0]:
+        fitted_on = {f.name for f in spread(frames, align[1])}
+        fit = fit_similarity(splats, [f for f in frames if f.name in fitted_on], bg, align[0])
+        frames = moved_cameras(frames, *fit)
     per = evaluate_model(splats, frames, torch.device("cpu"), bg, None, desc=f"score {stage}")
     s = summarise(per)
-    return {"psnr": s["psnr"], "iou": s["silhouette_iou"]}
+    out = {"psnr": s["psnr"], "iou": s["silhouette_iou"]}
+    if fitted_on:  # the views the similarity was not fitted on alone
+        rest = {m: {k: v for k, v in vals.items() if k not in fitted_on} for m, vals in per.items()}
+        out["psnr_unfitted"] = summarise(rest)["psnr"]
+    return out
 
 
 def main() -> None:
@@ -201,11 +265,15 @@ def main() -> None:
     ap.add_argument("--only", choices=("lego", "generated"), default=None)
     ap.add_argument("--refine-views", type=int, default=40, help="test views scored after test-pose refinement")
     ap.add_argument("--refine-steps", type=int, default=60)
+    ap.add_argument("--shape", type=int, default=None, help="the generated object's shape seed (another object)")
+    ap.add_argument("--align-steps", type=int, default=100, help="Adam steps of the similarity fitted on the photos")
+    ap.add_argument("--align-views", type=int, default=6, help="test views the similarity is fitted on")
     ap.add_argument("--exif", action="store_true", help="also the 4 photos as JPEGs whose EXIF gives their focal")
     args = ap.parse_args()
     scenes = []
     if args.only in (None, "generated"):
-        scenes.append(("generated", generated_scene, ["--downscale", "1"], []))
+        label = "generated" if args.shape is None else f"generated{args.shape}"
+        scenes.append((label, lambda step, out: generated_scene(step, out, args.shape), ["--downscale", "1"], []))
     if args.only in (None, "lego") and (args.lego / "transforms_train.json").is_file():
         scenes.append(("lego", lambda step, out: lego_scene(args.lego, step, out), ["--downscale", "2"], []))
     rows = []
@@ -224,6 +292,7 @@ def main() -> None:
                 ("unposed_exif", "unposed_exif", None, "posed by wgs, EXIF's focal refined"),
                 ("unposed_exif_held", "unposed_exif", held, "posed by wgs, EXIF's focal held"),
             ]
+        fit = (args.align_steps, args.align_views)
         for kind, photos, config, cameras in kinds:
             ws = out / f"ws_{kind}"
             wall = run_all(out / photos, ws, extra, config)
@@ -248,21 +317,33 @@ def main() -> None:
                     "cameras_own_focal": score(
                         ws, aligned_tests(ws, data["truth"], data["tests"], "cameras", True)[0], pose["norm"], "fine"
                     ),
+                    "fitted": score(ws, frames, pose["norm"], "fine", align=fit),
+                    "fitted_own_focal": score(
+                        ws,
+                        aligned_tests(ws, data["truth"], data["tests"], "cameras", True)[0],
+                        pose["norm"],
+                        "fine",
+                        align=fit,
+                    ),
                 }
             )
     print(
         "| scene | cameras | pose error (deg / % extent) | G_c PSNR | G_f PSNR | G_f IoU | G_f PSNR, test poses "
         "refined | wgs all (s) | its own eval (dB) | focal / true | G_f PSNR / IoU, the run's focal | "
-        "the same, aligned on the cameras' rotations |"
+        "the same, aligned on the cameras' rotations | G_f PSNR / IoU, one similarity fitted on the photos: "
+        "true focal, the run's (the views it was not fitted on) |"
     )
-    print("| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
+    print("| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
     for r in rows:
         print(
             f"| {r['scene']} | {r['cameras']} | {r['rotation_deg']:.2f} / {100 * r['centre']:.1f} | "
             f"{r['coarse']['psnr']:.2f} | {r['fine']['psnr']:.2f} | {r['fine']['iou']:.3f} | "
             f"{r['fine_refined']['psnr']:.2f} | {r['wall_s']:.0f} | {r['own_eval']:.2f} | {r['focal_ratio']:.3f} | "
             f"{r['own_focal']['psnr']:.2f} / {r['own_focal']['iou']:.3f} | "
-            f"{r['cameras_own_focal']['psnr']:.2f} / {r['cameras_own_focal']['iou']:.3f} |"
+            f"{r['cameras_own_focal']['psnr']:.2f} / {r['cameras_own_focal']['iou']:.3f} | "
+            f"{r['fitted']['psnr']:.2f} ({r['fitted']['psnr_unfitted']:.2f}) / {r['fitted']['iou']:.3f}, "
+            f"{r['fitted_own_focal']['psnr']:.2f} ({r['fitted_own_focal']['psnr_unfitted']:.2f}) / "
+            f"{r['fitted_own_focal']['iou']:.3f} |"
         )
 
 
