@@ -7,6 +7,7 @@ whole run compiles nothing more)."""
 from __future__ import annotations
 
 import importlib
+import os
 import pkgutil
 import time
 from typing import Any
@@ -40,10 +41,12 @@ def kernels() -> list[Any]:
 
 
 def cache_dir() -> str:
-    """Where numba caches the kernels: `NUMBA_CACHE_DIR`, else beside wgs's modules."""
-    from numba.core import config
-
-    return str(config.CACHE_DIR or "__pycache__ beside wgs's modules")  # type: ignore[attr-defined]
+    """Where numba caches the kernels: under `NUMBA_CACHE_DIR`, else beside wgs's modules where they
+    may be written, else in the user's cache folder (the folder holding every kernel's)."""
+    try:
+        return os.path.commonpath([str(k._cache._cache_path) for k in kernels()])
+    except (AttributeError, ValueError):  # numba's cache internals moved
+        return "numba's cache"
 
 
 def cached() -> bool:
