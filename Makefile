@@ -92,4 +92,4 @@ lint: $(VENV)/.installed
 	$(BIN)/mypy
 
 clean:
-	rm -rf $(DEMO_WS) examples/scene .pytest_cache .numba_cache wgs/*/__pycache__/*.nbi wgs/*/__pycache__/*.nbc
+	rm -rf $(DEMO_WS) examples/scene .pytest_cache wgs/*/__pycache__/*.nbi wgs/*/__pycache__/*.nbc

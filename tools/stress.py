@@ -19,7 +19,6 @@ results and a final model identical to the reference's. Writes signal_loop.json.
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import signal
 import subprocess
@@ -294,8 +293,8 @@ OUT = click.option(
 
 @click.group()
 def main() -> None:
-    """Interrupt `wgs all` and check that the resumed run ends as the uninterrupted one."""
-    os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(".numba_cache").resolve()))
+    """Interrupt `wgs all` and check that the resumed run ends as the uninterrupted one (the numba
+    kernels from numba's cache, where the set-up compiled them)."""
 
 
 @main.command("kill-loop")
