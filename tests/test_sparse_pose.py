@@ -15,6 +15,7 @@ from wgs import progress
 from wgs.fields import facts
 from wgs.io.images import read_image, write_png
 from wgs.scene.colmap import read_colmap_scene
+from wgs.scene.native_colmap import pycolmap
 from wgs.scene.pose_error import pose_errors
 from wgs.scene.sfm import MATCHERS, find_photos, pose_photos
 from wgs.stages.prepare.settings import PrepareConfig
@@ -49,6 +50,10 @@ def test_four_photos_45_degrees_apart_are_posed_offline(tmp_path, monkeypatch):
     keys = sorted(posed)
     err = pose_errors(np.stack([posed[k] for k in keys]), np.stack([cams[k][1] for k in keys]))
     assert np.median(err["rotation_deg"]) <= 2.0 and np.median(err["center"]) <= 0.05, err
+    # the points only two photos see are triangulated too (`sfm.SPARSE_TWO_VIEW_TRACKS`): most of
+    # what photos 45 degrees apart share
+    tracks = [len(p.track.elements) for p in pycolmap.Reconstruction(str(tmp_path / "model")).points3D.values()]
+    assert sum(n == 2 for n in tracks) > sum(n > 2 for n in tracks), np.bincount(tracks)
 
 
 @pytest.mark.slow

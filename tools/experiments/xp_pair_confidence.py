@@ -64,6 +64,28 @@ def pairs(scene: str, folder: Path, truth: dict[str, np.ndarray], focal: float) 
     return rows
 
 
+def pair_scenes(
+    tmp: Path, steps: list[float], shapes: list[int], lego: Path
+) -> list[tuple[str, Path, dict[str, np.ndarray], float]]:
+    """4 photos at each azimuth step, written under `tmp`: the generated objects (make_photos's
+    shape_seed, -1 the default object) and, where `lego` holds NeRF-Synthetic lego, a lego chain.
+    [(name, folder, {photo: true w2c}, true focal in px)]."""
+    scenes = []
+    for step in steps:
+        for shape in shapes:
+            folder = tmp / f"generated_{shape}_{step:g}"
+            cams = make_photos(
+                folder, n=4, azimuths=[step * i for i in range(4)], shape_seed=None if shape < 0 else shape
+            )
+            focal = float(next(iter(cams.values()))[0][0, 0])
+            name = f"generated{'' if shape < 0 else f' (shape {shape})'}, {step:g} deg steps"
+            scenes.append((name, folder, {k: v[1] for k, v in cams.items()}, focal))
+        if (lego / "transforms_train.json").is_file():
+            folder = tmp / f"lego_{step:g}"
+            scenes.append((f"lego, {step:g} deg chain", folder, lego_chain(lego, step, folder), LEGO_FOCAL))
+    return scenes
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--steps", type=float, nargs="+", default=[45, 60, 75])
@@ -72,18 +94,8 @@ def main() -> None:
     args = ap.parse_args()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        for step in args.steps:
-            for shape in args.shapes:
-                folder = Path(tmp) / f"generated_{shape}_{step:g}"
-                cams = make_photos(
-                    folder, n=4, azimuths=[step * i for i in range(4)], shape_seed=None if shape < 0 else shape
-                )
-                focal = float(next(iter(cams.values()))[0][0, 0])
-                name = f"generated{'' if shape < 0 else f' (shape {shape})'}, {step:g} deg steps"
-                rows += pairs(name, folder, {k: v[1] for k, v in cams.items()}, focal)
-            if (args.lego / "transforms_train.json").is_file():
-                folder = Path(tmp) / f"lego_{step:g}"
-                rows += pairs(f"lego, {step:g} deg chain", folder, lego_chain(args.lego, step, folder), LEGO_FOCAL)
+        for name, folder, truth, focal in pair_scenes(Path(tmp), args.steps, args.shapes, args.lego):
+            rows += pairs(name, folder, truth, focal)
     print("| photos | pair | apart (deg) | matches | confident | inliers (true K) | rotation error (deg) |")
     print("| --- | --- | ---: | ---: | ---: | ---: | ---: |")
     for r in rows:

@@ -10,10 +10,15 @@ gate), then three mappers on the same database:
   relative pose from its essential matrix, each new pair's scale from its points' depths in the
   photo it shares with the pairs placed before (the median ratio to the depths of placed points
   within 3 % of the image of them), then COLMAP's triangulation and bundle adjustment.
-With `--known-focal` the camera's focal length is the true one (as EXIF or `--focal` would give it)
-and stays fixed; else COLMAP's prior (1.2 x the long side) and bundle adjustment refines it.
+`--two-view-tracks no` has COLMAP leave out the points only two photos see, as it does by default
+(wgs's sparse path triangulates them: `sfm.SPARSE_TWO_VIEW_TRACKS`). `--pixel-scale S` multiplies
+the verification's and the chain's pixel thresholds (photos of 320-400 px, where COLMAP's are set
+for photos of thousands). With `--known-focal` the camera's focal length
+is the true one (as EXIF or `--focal` would give it) and stays fixed; else COLMAP's prior (1.2 x
+the long side) and bundle adjustment refines it.
 
-    python tools/experiments/xp_wide_pose.py [--steps 45 60] [--known-focal] [--lego ../shared/data/lego]
+    python tools/experiments/xp_wide_pose.py [--steps 45 60] [--known-focal] [--pixel-scale 0.3]
+        [--two-view-tracks no] [--lego ../shared/data/lego]
 """
 
 from __future__ import annotations
@@ -39,6 +44,36 @@ from wgs.scene.native_colmap import pycolmap  # noqa: E402
 from wgs.scene.pose_error import pose_errors  # noqa: E402
 
 NEAR = 0.03  # the chain's scale: placed points within this share of the image's long side
+# `--pixel-scale`: COLMAP's pixel thresholds (two-view verification's 4 px, the chain's 2 px) times this
+PIXEL_SCALE = [1.0]
+
+
+def scaled_verification(sparse: bool = False):
+    """`sfm.verification_options` with its RANSAC threshold times PIXEL_SCALE."""
+    options = VERIFICATION(sparse)
+    options.ransac.max_error *= PIXEL_SCALE[0]
+    return options
+
+
+VERIFICATION = sfm.verification_options
+sfm.verification_options = scaled_verification
+# `--two-view-tracks yes|no`: whether COLMAP triangulates the points only two photos see, in the
+# incremental mapper and in the chain's triangulation (COLMAP's default: no; wgs's sparse path's:
+# `sfm.SPARSE_TWO_VIEW_TRACKS`)
+TWO_VIEW_TRACKS = [sfm.SPARSE_TWO_VIEW_TRACKS]
+INCREMENTAL = pycolmap.incremental_mapping
+
+
+def with_two_view_tracks(options: pycolmap.IncrementalPipelineOptions) -> pycolmap.IncrementalPipelineOptions:
+    options.triangulation.ignore_two_view_tracks = not TWO_VIEW_TRACKS[0]
+    return options
+
+
+def incremental_mapping(db, image_dir, out, options, **kw):
+    return INCREMENTAL(db, image_dir, out, options=with_two_view_tracks(options), **kw)
+
+
+pycolmap.incremental_mapping = incremental_mapping
 
 
 def unit_depths(R: np.ndarray, t: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -62,7 +97,7 @@ def chain_model(db: Path, image_dir: Path, names: list[str], out: Path, refine_f
             inliers[(a, b)] = matches
     database.close()
     ransac = pycolmap.RANSACOptions()
-    ransac.max_error, ransac.random_seed = 2.0, sfm.RANSAC_SEED
+    ransac.max_error, ransac.random_seed = 2.0 * PIXEL_SCALE[0], sfm.RANSAC_SEED
     relative = {}
     for (a, b), m in inliers.items():
         found = pycolmap.estimate_essential_matrix(keypoints[a][m[:, 0]], keypoints[b][m[:, 1]], cam, cam, ransac)
@@ -121,7 +156,9 @@ def chain_model(db: Path, image_dir: Path, names: list[str], out: Path, refine_f
         else:
             model.add_image_with_trivial_frame(image)
     out.mkdir(parents=True, exist_ok=True)
-    model = pycolmap.triangulate_points(model, db, image_dir, out)
+    model = pycolmap.triangulate_points(
+        model, db, image_dir, out, options=with_two_view_tracks(pycolmap.IncrementalPipelineOptions())
+    )
     adjust = pycolmap.BundleAdjustmentOptions()
     adjust.refine_focal_length = refine_focal
     pycolmap.bundle_adjustment(model, adjust)
@@ -160,7 +197,9 @@ def learned_database(folder: Path, focal: float | None):
         w, h = image_size(image_dir / names[0])
         reader.camera_params = f"{focal},{w / 2},{h / 2}"
     with sfm._colmap_quiet():
-        verified = sfm._learned_database(db, image_dir, names, mask_dir, reader, pycolmap.CameraMode.SINGLE)
+        verified = sfm._learned_database(
+            db, image_dir, names, mask_dir, reader, pycolmap.CameraMode.SINGLE, sfm.MATCH_SIDE
+        )
     return work, db, image_dir, names, verified
 
 
@@ -204,8 +243,12 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--steps", type=float, nargs="+", default=[45, 60])
     ap.add_argument("--known-focal", action="store_true")
+    ap.add_argument("--pixel-scale", type=float, default=1.0)
+    ap.add_argument("--two-view-tracks", choices=("yes", "no"), default="yes" if sfm.SPARSE_TWO_VIEW_TRACKS else "no")
     ap.add_argument("--lego", type=Path, default=Path("../shared/data/lego"))
     args = ap.parse_args()
+    PIXEL_SCALE[0] = args.pixel_scale
+    TWO_VIEW_TRACKS[0] = args.two_view_tracks == "yes"
     print("| photos | apart (deg) | verified pairs | incremental | global | chain |")
     print("| --- | --- | --- | --- | --- | --- |")
     with tempfile.TemporaryDirectory() as tmp:
