@@ -207,30 +207,39 @@ def lego_or_skip() -> Path:
 
 
 def run_cli(args, cwd: Path, timeout: float = 180) -> subprocess.CompletedProcess:
-    """Run `wgs` in a subprocess, as a shell would (main() maps errors to exit codes)."""
+    """Run `wgs` in a subprocess, as a shell would (main() maps errors to exit codes): for what only a
+    process shows (a native library's own stderr, resource limits, signals, a pool of children)."""
     return subprocess.run(
         [sys.executable, "-m", "wgs", *map(str, args)], capture_output=True, text=True, cwd=cwd, timeout=timeout
     )
 
 
-def expect_error(cwd: Path, args, *needles: str, code: int = 2) -> str:
-    """The command fails with `code` and exactly one `error:` line holding every needle, no traceback.
-    It runs in this process through `wgs.cli.main`, the entry point's error mapping (a subprocess
-    would add only a torch import); an unexpected exception fails the test with its traceback."""
+def run_wgs(args, cwd: Path) -> subprocess.CompletedProcess:
+    """Run `wgs` in this process through `wgs.cli.main`, the entry point's error mapping: its exit code,
+    stdout and stderr as `run_cli` gives them (a subprocess adds the imports, about 2 s, and torch's
+    compiler stack that its optimizers load, 1.3 s); an unexpected exception fails the test with
+    its traceback."""
     import contextlib
     import io
 
     from wgs.cli import main
 
-    err_buf = io.StringIO()
-    with contextlib.chdir(cwd), contextlib.redirect_stderr(err_buf), contextlib.redirect_stdout(io.StringIO()):
+    out_buf, err_buf = io.StringIO(), io.StringIO()
+    with contextlib.chdir(cwd), contextlib.redirect_stderr(err_buf), contextlib.redirect_stdout(out_buf):
         try:
             main([str(a) for a in args])
             returncode = 0
         except SystemExit as exc:
             returncode = exc.code if isinstance(exc.code, int) else 1
-    err = err_buf.getvalue().strip()
-    assert returncode == code, (returncode, err)
+    return subprocess.CompletedProcess(["wgs", *map(str, args)], returncode, out_buf.getvalue(), err_buf.getvalue())
+
+
+def expect_error(cwd: Path, args, *needles: str, code: int = 2) -> str:
+    """The command fails with `code` and exactly one `error:` line holding every needle, no traceback
+    (`run_wgs`, in this process)."""
+    proc = run_wgs(args, cwd)
+    err = proc.stderr.strip()
+    assert proc.returncode == code, (proc.returncode, err)
     assert "Traceback" not in err, err
     lines = [ln for ln in err.splitlines() if ln.startswith("error:")]
     assert len(lines) == 1, err

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import expect_error, make_scene, run_cli, to_idr
+from conftest import expect_error, make_scene, run_wgs, to_idr
 
 from wgs.config import as_dict, load_config_file
 from wgs.context import RunOptions
@@ -139,7 +139,7 @@ def test_views_that_share_no_object_region(tmp_path, blender_scene):
         img[[slice(0, q), slice(h - q, h)][k // 2 % 2], [slice(0, q), slice(w - q, w)][k % 2], 3] = 1.0
         write_png(p, img)
     expect_error(tmp_path, ["-q", "-w", tmp_path / "ws", "coarse"], "prepare stage has not run", "wgs prepare")
-    assert run_cli(["-q", "-w", tmp_path / "ws", "prepare", scene], tmp_path).returncode == 0
+    assert run_wgs(["-q", "-w", tmp_path / "ws", "prepare", scene], tmp_path).returncode == 0
     expect_error(tmp_path, ["-q", "-w", tmp_path / "ws", "coarse"], str(scene), "visual hull", "empty", "masks")
     assert not (tmp_path / "ws" / "1_coarse").exists()
 

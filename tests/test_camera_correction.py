@@ -9,7 +9,7 @@ import shutil
 import numpy as np
 import pytest
 import torch
-from conftest import make_scene, run_cli
+from conftest import make_scene, run_wgs
 
 from wgs.io import read_json
 from wgs.scene.colmap import read_model, write_model
@@ -38,7 +38,7 @@ def prepared(tmp_path_factory):
     learned matching poses), 96 px, masks."""
     base = tmp_path_factory.mktemp("camera_correction")
     scene = make_scene(base / "scene", seed=2, size=96, n_train=8, n_test=2)
-    proc = run_cli(["-w", base / "ws", "prepare", scene, "--mirror", "none"], base)
+    proc = run_wgs(["-w", base / "ws", "prepare", scene, "--mirror", "none"], base)
     assert proc.returncode == 0, proc.stderr
     return base / "ws" / "scene"
 

@@ -5,7 +5,7 @@ import json
 
 import pytest
 import torch
-from conftest import expect_error, run_cli
+from conftest import expect_error, run_wgs
 
 from wgs.config import STAGES, load_config_file, resolve
 from wgs.cost import (
@@ -385,7 +385,7 @@ def test_feature_prepare_max_size_and_estimate(blender_scene, tmp_path):
     """`wgs prepare --max-size` sets the working size; without it the machine's is chosen and said;
     the estimate of what follows is printed and kept in run.json."""
     ws = tmp_path / "ws"
-    r = run_cli(["-w", str(ws), "prepare", str(blender_scene), "--views", "4", "--max-size", "32"], tmp_path)
+    r = run_wgs(["-w", str(ws), "prepare", str(blender_scene), "--views", "4", "--max-size", "32"], tmp_path)
     assert r.returncode == 0, r.stderr
     info = json.loads((ws / "scene" / "scene.json").read_text())
     assert max(info["resolution"]) <= 32 and info["downscale"] >= 2
@@ -394,7 +394,7 @@ def test_feature_prepare_max_size_and_estimate(blender_scene, tmp_path):
     record = json.loads((ws / "run.json").read_text())
     assert set(record["estimate"]) >= {"coarse", "fine", "eval"} and record["budget_s"] is None
     ws2 = tmp_path / "ws2"
-    r = run_cli(["-w", str(ws2), "prepare", str(blender_scene), "--views", "4"], tmp_path)
+    r = run_wgs(["-w", str(ws2), "prepare", str(blender_scene), "--views", "4"], tmp_path)
     assert r.returncode == 0 and "own size" in r.stderr
 
 

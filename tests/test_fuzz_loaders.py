@@ -2,7 +2,7 @@
 instant-ngp), IDR camera npz files, split files. Whatever the bytes, a loader returns a scene or
 raises InputError (one line naming the file); nothing else may escape.
 
-Examples per test: 800 in `make test` (profile "ci"), 5000 in `make stress` (HYPOTHESIS_PROFILE=stress).
+Examples per test: 400 in `make test` (profile "ci"), 5000 in `make stress` (HYPOTHESIS_PROFILE=stress).
 """
 
 from __future__ import annotations

@@ -44,7 +44,8 @@ def test_a_whole_run_compiles_no_kernel_beyond_compile_kernels(tmp_path):
     sigs = json.loads(proc.stdout.splitlines()[-1])
     assert set(sigs["before"]) == {k.__name__ for k in kernels.kernels()}
     # the entry points compiled (`_touches` runs only inside other kernels)
-    assert all(sigs["before"][name] for name in ("_forward", "_backward", "hull_votes", "first_hit", "mirror_ious"))
+    entry_points = ("_forward", "_backward", "hull_votes", "first_hit", "mirror_ious", "kept_under_rotations")
+    assert all(sigs["before"][name] for name in entry_points)
     assert sigs["after"] == sigs["before"]
 
 

@@ -10,13 +10,13 @@ import make_scene
 import numpy as np
 import pytest
 import torch
-from conftest import generated_frames, run_cli
+from conftest import generated_frames, run_wgs
 
 from wgs.shape.hull import box_rays, march, silhouette, visual_hull_grid
 from wgs.shape.next_view import describe_direction, loose_voxels, suggest_view
 from wgs.shape.opening import opening
 from wgs.shape.own_shape import OwnShapeParams, own_shape
-from wgs.shape.revolution import revolved, rotation_matrices, spread_order
+from wgs.shape.revolution import revolved, revolved_torch, rotation_matrices, spread_order
 from wgs.shape.scores import mean_scores, silhouette_scores
 
 SIZE, RESOLUTION = 64, 48
@@ -110,6 +110,21 @@ def test_rotations_and_their_order():
     assert sorted(spread_order(24)) == list(range(24)) and spread_order(8)[:3] == [0, 4, 2]
 
 
+def test_revolution_fast_path_matches_reference():
+    """The numba kernel keeps the voxels the torch reference keeps, on a box with a ball on it
+    (64³, a solid of revolution about a tilted line off the centre)."""
+    from wgs.shape.hull import HullGrid
+
+    c = (torch.arange(64) + 0.5) / 64 * 2 - 1
+    x, y, z = torch.meshgrid(c, c, c, indexing="ij")
+    occ = ((x.abs() < 0.7) & (y.abs() < 0.6) & (z.abs() < 0.8)) | (x * x + y * y + (z - 0.5) ** 2 < 0.3)
+    grid = HullGrid(torch.full((3,), -1.0), torch.full((3,), 1.0), occ)
+    for axis in ([0.1, 0.2, 1.0], [1.0, 0.0, 0.0], [0.3, -0.5, 0.2]):
+        line = (torch.tensor([0.01, 0.02, 0.0]), torch.nn.functional.normalize(torch.tensor(axis), dim=0))
+        fast, reference = revolved(grid, *line).occ, revolved_torch(grid, *line).occ
+        assert torch.equal(fast, reference) and 0 < int(reference.sum()) < int(occ.sum())
+
+
 def test_a_ball_is_its_own_revolution_and_opening():
     from wgs.shape.hull import HullGrid
 
@@ -142,5 +157,5 @@ def test_the_sentence_names_side_and_height():
 
 
 def test_suggest_needs_a_prepared_scene(tmp_path):
-    r = run_cli(["-w", str(tmp_path / "ws"), "suggest"], tmp_path)
+    r = run_wgs(["-w", str(tmp_path / "ws"), "suggest"], tmp_path)
     assert r.returncode == 2 and "wgs prepare" in r.stderr

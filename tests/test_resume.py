@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import TINY, make_scene
+from conftest import TINY_ONE_MODEL, make_scene, run_wgs
 
 import wgs.resume
 from tools.stress import STACK_MARKERS, max_param_difference, outcome
@@ -24,10 +24,11 @@ from wgs.training.per_object import train_hf_unet, train_scratch_d
 
 pytestmark = pytest.mark.slow  # `pytest -m 'not slow'` for a quick loop; make test runs all
 
-# TINY with longer coarse and mask-data loops, so a kill lands in their middle; the coarse models
-# train all their iterations (tests/test_stopping.py resumes a stage that the held-out rule stopped)
+# TINY_ONE_MODEL with longer coarse and mask-data loops, so a kill lands in their middle; the coarse
+# model trains all its iterations (tests/test_stopping.py resumes a stage that the held-out rule
+# stopped, and an ensemble member killed in its loop)
 CFG = (
-    TINY.replace(
+    TINY_ONE_MODEL.replace(
         "iterations = 30\nrefine_start = 10\nrefine_every = 10",
         "iterations = 150\nrefine_start = 20\nrefine_every = 20",
     )
@@ -44,7 +45,7 @@ def setup(tmp_path_factory):
     cfg = base / "wgs.toml"
     cfg.write_text(CFG)
     ref = base / "reference"
-    subprocess.run(wgs_cmd(ref, cfg, "all", str(scene)), check=True, capture_output=True)
+    assert run_wgs(wgs_args(ref, cfg, "all", str(scene)), base).returncode == 0
     return scene, cfg, ref
 
 
@@ -63,11 +64,9 @@ def prepared_copy(setup, tmp_path, done: tuple[str, ...] = ("scene",)) -> Path:
     return copy_workspace(setup[2], tmp_path / "ws", done)
 
 
-def wgs_cmd(ws: Path, cfg: Path, *args: str, resume: bool = False, quiet: bool = True) -> list[str]:
+def wgs_args(ws: Path, cfg: Path, *args: str, resume: bool = False, quiet: bool = True) -> list[str]:
+    """`wgs`'s arguments for a run in `ws` with the config `cfg` (`run_wgs` runs them in this process)."""
     return [
-        sys.executable,
-        "-m",
-        "wgs",
         *(["-q"] if quiet else []),
         "--config",
         str(cfg),
@@ -78,6 +77,11 @@ def wgs_cmd(ws: Path, cfg: Path, *args: str, resume: bool = False, quiet: bool =
         str(ws),
         *args,
     ]
+
+
+def wgs_cmd(ws: Path, cfg: Path, *args: str, resume: bool = False, quiet: bool = True) -> list[str]:
+    """`wgs_args` as a command for a subprocess: for the runs a test interrupts with a signal."""
+    return [sys.executable, "-m", "wgs", *wgs_args(ws, cfg, *args, resume=resume, quiet=quiet)]
 
 
 def start_and_signal_when(cmd: list[str], trigger: Path, sig: int, timeout: float = 120) -> subprocess.Popen:
@@ -113,7 +117,7 @@ def test_sigkill_in_mask_data_then_resume_gives_the_uninterrupted_result(setup, 
     assert (ws / "1_coarse/manifest.json").exists() and not (ws / "2_mask_data").exists()
     saved = torch.load(ws / ".resume/2_mask_data/gd.pt", weights_only=True)
     assert 0 < saved["it"] < 150
-    res = subprocess.run(wgs_cmd(ws, cfg, "all", str(scene), resume=True), capture_output=True, text=True)
+    res = run_wgs(wgs_args(ws, cfg, "all", str(scene), resume=True), tmp_path)
     assert res.returncode == 0, res.stderr
     assert outcome(ws) == outcome(ref)
     assert max_param_difference(ws, ref) == 0.0
@@ -136,7 +140,7 @@ def test_ctrl_c_saves_state_with_one_line_and_resume_continues(setup, tmp_path, 
     assert sig == signal.SIGINT or f"({sig.name})" in lines[0]
     stopped = torch.load(ws / ".resume/1_coarse/gc.pt", weights_only=True)["it"]
     assert 0 < stopped < 100 and not (ws / "1_coarse").exists()
-    res = subprocess.run(wgs_cmd(ws, cfg, "coarse", resume=True), capture_output=True, text=True)
+    res = run_wgs(wgs_args(ws, cfg, "coarse", resume=True), tmp_path)
     assert res.returncode == 0, res.stderr
     assert_same_model(ws, ref)
 
@@ -157,7 +161,7 @@ def test_a_scheduler_stop_signal_saves_with_one_line_and_resume_finishes_identic
     assert len(lines) == 1 and lines[0].startswith("interrupted: coarse stopped after step"), err
     assert f"({sig.name})" in lines[0] and "--resume" in lines[0]
     assert not any(m in err for m in STACK_MARKERS), err
-    res = subprocess.run(wgs_cmd(ws, cfg, "coarse", resume=True), capture_output=True, text=True)
+    res = run_wgs(wgs_args(ws, cfg, "coarse", resume=True), tmp_path)
     assert res.returncode == 0, res.stderr
     assert_same_model(ws, ref)
 
@@ -191,9 +195,7 @@ def coarse_killed_midway(setup, tmp_path) -> Path:
 def test_saved_state_of_other_settings_is_not_resumed(setup, tmp_path):
     _, cfg, _ = setup
     ws = coarse_killed_midway(setup, tmp_path)
-    res = subprocess.run(
-        wgs_cmd(ws, cfg, "coarse", "--iterations", "40", resume=True, quiet=False), capture_output=True, text=True
-    )
+    res = run_wgs(wgs_args(ws, cfg, "coarse", "--iterations", "40", resume=True, quiet=False), tmp_path)
     assert res.returncode == 0, res.stderr
     assert "belongs to other inputs or settings: starting over" in res.stderr
     assert torch.load(ws / "1_coarse/ckpt.pt", weights_only=True)["step"] == 40
@@ -202,7 +204,7 @@ def test_saved_state_of_other_settings_is_not_resumed(setup, tmp_path):
 def test_without_resume_a_rerun_starts_over_and_says_so(setup, tmp_path):
     _, cfg, _ = setup
     ws = coarse_killed_midway(setup, tmp_path)
-    res = subprocess.run(wgs_cmd(ws, cfg, "coarse", quiet=False), capture_output=True, text=True)
+    res = run_wgs(wgs_args(ws, cfg, "coarse", quiet=False), tmp_path)
     assert res.returncode == 0, res.stderr
     assert "starting over (add --resume" in res.stderr
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 import pytest
-from conftest import expect_error, ring_w2c, run_cli
+from conftest import expect_error, ring_w2c, run_wgs
 from photo_scene import make_photos
 
 from wgs.errors import InputError
@@ -142,7 +142,7 @@ def test_features_only_inside_the_masks(tmp_path):
 def prepared_photos(photos, tmp_path_factory):
     """`wgs prepare --views 4` on the 20 photos: (workspace, the command's run)."""
     base = tmp_path_factory.mktemp("prepared_photos")
-    return base / "ws", run_cli(["-w", base / "ws", "prepare", photos[0], "--views", "4"], base)
+    return base / "ws", run_wgs(["-w", base / "ws", "prepare", photos[0], "--views", "4"], base)
 
 
 def test_prepare_poses_photos_once_then_reuses(photos, prepared_photos, tmp_path):
@@ -156,7 +156,7 @@ def test_prepare_poses_photos_once_then_reuses(photos, prepared_photos, tmp_path
     assert isinstance(info["resolution"][0], int), "one camera: every view undistorts to one size"
     assert pycolmap.Reconstruction(str(ws / "sfm")).num_cameras() == 1
     assert (ws / "sfm" / "cameras.bin").is_file()
-    again = run_cli(["-w", ws, "prepare", root, "--views", "4"], tmp_path)
+    again = run_wgs(["-w", ws, "prepare", root, "--views", "4"], tmp_path)
     assert again.returncode == 0 and "already posed" in again.stderr and "up to date" in again.stderr
 
 
@@ -185,7 +185,7 @@ def test_unknown_matcher_is_refused(photos, tmp_path):
     image_dir, names, mask_dir = find_photos(root)
     with pytest.raises(InputError, match="unknown matcher"):
         pose_photos(image_dir, names, mask_dir, tmp_path / "m", "vocab", 1600)
-    proc = run_cli(["-w", tmp_path / "ws", "prepare", root, "--matcher", "vocab"], tmp_path)
+    proc = run_wgs(["-w", tmp_path / "ws", "prepare", root, "--matcher", "vocab"], tmp_path)
     assert proc.returncode == 2 and "vocab" in proc.stderr
     (tmp_path / "wgs.toml").write_text('[prepare]\nmatcher = "vocab"\n')
     expect_error(
@@ -268,7 +268,7 @@ def test_llff_images_k_only_scales_the_focal_length(tmp_path):
 
 def test_llff_prepare_end_to_end(tmp_path):
     make_llff(tmp_path / "s", n=8)
-    proc = run_cli(["-w", tmp_path / "ws", "prepare", tmp_path / "s", "--views", "3"], tmp_path)
+    proc = run_wgs(["-w", tmp_path / "ws", "prepare", tmp_path / "s", "--views", "3"], tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert json.loads((tmp_path / "ws" / "scene" / "scene.json").read_text())["format"] == "llff"
 
@@ -298,10 +298,9 @@ def test_eval_localises_the_test_cameras_of_photos_it_posed(photos, prepared_pho
     (tmp_path / "wgs.toml").write_text(TINY + "localise_steps = 5\n")
     ws = tmp_path / "ws"
     shutil.copytree(prepared_photos[0] / "sfm", ws / "sfm")  # the same photos and settings: posed once
-    proc = run_cli(
+    proc = run_wgs(
         ["--config", tmp_path / "wgs.toml", "-w", ws, "all", root, "--views", "4", "--downscale", "4"],
         tmp_path,
-        timeout=400,
     )
     assert proc.returncode == 0, proc.stderr
     res = json.loads((ws / "6_eval" / "results.json").read_text())

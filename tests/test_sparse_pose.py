@@ -131,11 +131,11 @@ def test_two_objects_are_refused_naming_the_photos(tmp_path):
 def test_three_that_pose_are_kept_and_the_fourth_is_named(tmp_path):
     """Three photos 30 degrees apart pose; one 140 degrees from them is left out with one line, and
     the scene trains on the three (the masks agree with their poses)."""
-    from conftest import run_cli
+    from conftest import run_wgs
 
     make_photos(tmp_path / "p", n=4, azimuths=[0, 30, 60, 200])
     (tmp_path / "short.toml").write_text(SMALL + 'camera_iterations = 40\nmirror = "none"\n')
-    proc = run_cli(["--config", tmp_path / "short.toml", "-w", tmp_path / "ws", "prepare", tmp_path / "p"], tmp_path)
+    proc = run_wgs(["--config", tmp_path / "short.toml", "-w", tmp_path / "ws", "prepare", tmp_path / "p"], tmp_path)
     assert proc.returncode == 0, proc.stderr
     err = " ".join(proc.stderr.split())
     assert "photo_003.png left out: it shares too little" in err and "3 of 4 photos registered" in err

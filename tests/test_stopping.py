@@ -4,12 +4,11 @@ stage stopping there, saying why, and keeping that stop across a resume."""
 import dataclasses
 import json
 import signal
-import subprocess
 
 import pytest
 import torch
-from conftest import TINY_HELD_OUT, make_scene
-from test_resume import assert_same_model, copy_workspace, start_and_signal_when, wgs_cmd
+from conftest import TINY_HELD_OUT, make_scene, run_wgs
+from test_resume import assert_same_model, copy_workspace, start_and_signal_when, wgs_args, wgs_cmd
 
 from wgs.gaussians.stopping import mean_curve, pilot_cap, plateau_iteration, plateau_past, smoothed, still_gaining
 
@@ -102,10 +101,11 @@ def tiny(tmp_path_factory):
     TINY's prepare settings): each test starts from a copy at the coarse stage."""
     base = tmp_path_factory.mktemp("stopping")
     scene = make_scene(base / "scene", seed=2, size=64, n_train=4, n_test=5)
-    subprocess.run(
-        wgs_cmd(base / "prepared", coarse_cfg(base, "prepare.toml", ""), "prepare", str(scene)),
-        check=True,
-        capture_output=True,
+    assert (
+        run_wgs(
+            wgs_args(base / "prepared", coarse_cfg(base, "prepare.toml", ""), "prepare", str(scene)), base
+        ).returncode
+        == 0
     )
     return scene, base
 
@@ -125,7 +125,7 @@ def coarse_cfg(base, name: str, extra: str, ensemble: int = 1):
 def prepared_and_coarse(ws, cfg, scene) -> tuple[str, dict, list[str]]:
     """`wgs coarse` after the shared prepare: what coarse said (one line), its manifest, the photos' names."""
     copy_workspace(scene.parent / "prepared", ws)
-    proc = subprocess.run(wgs_cmd(ws, cfg, "coarse", quiet=False), capture_output=True, text=True)
+    proc = run_wgs(wgs_args(ws, cfg, "coarse", quiet=False), ws)
     assert proc.returncode == 0, proc.stderr
     photos = json.loads((ws / "scene/scene.json").read_text())["train_names"]
     return " ".join(proc.stderr.split()), json.loads((ws / "1_coarse/manifest.json").read_text()), photos
@@ -152,7 +152,7 @@ def test_coarse_and_fine_stop_where_the_pilots_stopped_gaining_say_why_and_resum
     )
     assert "[fine]\niterations = 120" in cfg.read_text()
     ref = copy_workspace(base / "prepared", tmp_path / "ref")
-    proc = subprocess.run(wgs_cmd(ref, cfg, "all", str(scene), quiet=False), capture_output=True, text=True)
+    proc = run_wgs(wgs_args(ref, cfg, "all", str(scene), quiet=False), tmp_path)
     assert proc.returncode == 0, proc.stderr
     said = " ".join(proc.stderr.split())
     assert "coarse: stops at iteration 50 of 120, 3 x 0, where the held-out PSNR of 4 pilots" in said, said
@@ -195,7 +195,7 @@ def test_coarse_and_fine_stop_where_the_pilots_stopped_gaining_say_why_and_resum
     killed = start_and_signal_when(wgs_cmd(ws, cfg, "coarse"), ws / ".resume/1_coarse/gc1.pt", signal.SIGKILL)
     killed.communicate(timeout=120)
     assert (ws / ".resume/1_coarse/stop.pt").is_file()
-    res = subprocess.run(wgs_cmd(ws, cfg, "coarse", resume=True, quiet=False), capture_output=True, text=True)
+    res = run_wgs(wgs_args(ws, cfg, "coarse", resume=True, quiet=False), tmp_path)
     assert res.returncode == 0, res.stderr
     assert "the pilots ran before the interruption: their stop is kept" in " ".join(res.stderr.split())
     assert "stops at iteration 50 of 120" in " ".join(res.stderr.split())
@@ -208,12 +208,12 @@ def test_coarse_and_fine_stop_where_the_pilots_stopped_gaining_say_why_and_resum
     killed = start_and_signal_when(wgs_cmd(ws, cfg, "fine"), ws / ".resume/5_fine/gf.pt", signal.SIGKILL)
     killed.communicate(timeout=120)
     assert 0 < torch.load(ws / ".resume/5_fine/gf.pt", weights_only=True)["it"] < 50
-    res = subprocess.run(wgs_cmd(ws, cfg, "fine", resume=True, quiet=False), capture_output=True, text=True)
+    res = run_wgs(wgs_args(ws, cfg, "fine", resume=True, quiet=False), tmp_path)
     assert res.returncode == 0, res.stderr
     assert "stops at iteration 50 of 120" in " ".join(res.stderr.split())
     assert_same_model(ws, ref, "5_fine")
 
-    res = subprocess.run(wgs_cmd(ws, cfg, "fine", "--stop", "iterations", "--iterations", "60"), capture_output=True)
+    res = run_wgs(wgs_args(ws, cfg, "fine", "--stop", "iterations", "--iterations", "60"), tmp_path)
     assert res.returncode == 0, res.stderr
     m = json.loads((ws / "5_fine/manifest.json").read_text())
     assert m["iterations"] == 60 and m["stopping"] is None

@@ -78,10 +78,14 @@ def _tiny_frames(size: int = 32) -> list:
 def compile_kernels() -> float:
     """Run every kernel once (numba compiles it, or loads it from its cache); seconds taken."""
     from .gaussians.synthetic import time_backend
+    from .shape.hull import HullGrid
+    from .shape.revolution import revolved
     from .shape.symmetry import mirror_check
 
     t0 = time.perf_counter()
     with torch.random.fork_rng():
         time_backend("numba", 32, 64, 1)  # projection and rasterizer, forward and backward
         mirror_check(_tiny_frames(), 0.0, 1.0, 8)  # the hull's votes, its silhouettes, the mirror's IoUs
+        cube = HullGrid(-torch.ones(3), torch.ones(3), torch.ones(4, 4, 4, dtype=torch.bool))
+        revolved(cube, torch.zeros(3), torch.tensor([0.0, 0.0, 1.0]))  # the solid of revolution's test
     return time.perf_counter() - t0

@@ -35,22 +35,48 @@ def spread_order(n: int) -> list[int]:
     return order
 
 
+def _revolution_inputs(grid: HullGrid, point: torch.Tensor, axis: torch.Tensor, angles: int):
+    """What `revolved` works on: the occupancy grown by one voxel [R³] bool, the occupied voxels'
+    flat indices [N] and centres less `point` [N, 3], the rotations in the order tried [A - 1, 3, 3]
+    (far-apart angles first: most voxels that go, go early)."""
+    grown = torch.nn.functional.max_pool3d(grid.occ[None, None].float(), 3, stride=1, padding=1)[0, 0].reshape(-1) > 0
+    idx = grid.occ.reshape(-1).nonzero()[:, 0]
+    rots = rotation_matrices(axis, angles)[spread_order(angles)[1:]]
+    return grown, idx, grid.centres()[idx] - point, rots
+
+
+def revolved_torch(grid: HullGrid, point: torch.Tensor, axis: torch.Tensor, angles: int = ANGLES) -> HullGrid:
+    """The reference of `revolved`: the voxels still in the running turned by one angle at a time."""
+    grown, idx, rel, rots = _revolution_inputs(grid, point, axis, angles)
+    for rot in rots:
+        vox = grid.voxel_index(rel @ rot.T + point)
+        keep = (vox >= 0) & grown[vox.clamp_min(0)]
+        idx, rel = idx[keep], rel[keep]
+    out = torch.zeros(grid.occ.numel(), dtype=torch.bool)
+    out[idx] = True
+    return grid.with_occupancy(out)
+
+
 def revolved(grid: HullGrid, point: torch.Tensor, axis: torch.Tensor, angles: int = ANGLES) -> HullGrid:
     """The occupied voxels whose centre stays within one voxel of an occupied voxel under every
     rotation by a multiple of 360 / `angles` degrees about the line through `point` [3] along `axis`
     [3]: the largest solid of revolution about that line inside the grid (the one voxel of slack
-    keeps the grid's own steps from eating its outline)."""
-    occ = grid.occ.reshape(-1)
-    flat = torch.nn.functional.max_pool3d(grid.occ[None, None].float(), 3, stride=1, padding=1)[0, 0].reshape(-1) > 0
-    idx = occ.nonzero()[:, 0]
-    rel = grid.centres()[idx] - point
-    rots = rotation_matrices(axis, angles)
-    for k in spread_order(angles)[1:]:  # far-apart angles first: most voxels that go, go early
-        vox = grid.voxel_index(rel @ rots[k].T + point)
-        keep = (vox >= 0) & flat[vox.clamp_min(0)]
-        idx, rel = idx[keep], rel[keep]
-    out = torch.zeros_like(occ)
-    out[idx] = True
+    keeps the grid's own steps from eating its outline). CPU numba kernel (`revolution_numba`);
+    `revolved_torch` is its reference."""
+    from .revolution_numba import kept_under_rotations
+
+    grown, idx, rel, rots = _revolution_inputs(grid, point, axis, angles)
+    keep = kept_under_rotations(
+        rel.float().contiguous().numpy(),
+        point.float().contiguous().numpy(),
+        rots.float().contiguous().numpy(),
+        grid.lo.float().contiguous().numpy(),
+        grid.cell.float().contiguous().numpy(),
+        grid.resolution,
+        grown.to(torch.uint8).numpy(),
+    )
+    out = torch.zeros(grid.occ.numel(), dtype=torch.bool)
+    out[idx[torch.from_numpy(keep)]] = True
     return grid.with_occupancy(out)
 
 
